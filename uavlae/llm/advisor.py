@@ -1,0 +1,341 @@
+"""The LLM advisor: states in, validated velocities or typed failures out.
+
+``LLMAdvisor.advise(states)`` (async) sends one request per distinct prompt, all at once under
+a concurrency limit; each runs the extractor's ask-again loop (paper: at most 10 attempts).
+``advise_sync`` serves a plain training loop from one background event loop and one client.
+The advisor never applies the fallback itself: an :class:`AdviceFailure` carries
+``cfg.fallback`` and the caller (the override module) ends the episode or uses the policy's or
+the heuristic's action.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import replace
+from typing import Any, Sequence
+
+import httpx
+
+from .cache import AdviceCache, cache_key
+from .client import BadResponse, RequestFailed, chat_completion
+from .config import LLMConfig, make_llm_config
+from .extractor import extract_action
+from .prompt import build_messages, retry_message, template
+from .schema import Advice, AdviceFailure, CacheMissError, ExtractionError, FailureKind, action_json_schema
+from .state import AdvisorState
+
+log = logging.getLogger("uavlae.llm")
+
+
+class AdvisorStats:
+    """Counters for the training logs; ``snapshot()`` gives flat ``{name: number}``."""
+
+    def __init__(self, window: int = 4096):
+        self._lock = threading.Lock()
+        self._window = window
+        self.reset()
+
+    def reset(self) -> None:
+        with getattr(self, "_lock", threading.Lock()):
+            self.requests = 0  # advice asked for (states)
+            self.calls = 0  # HTTP requests sent, retries included
+            self.cache_hits = 0
+            self.retries = 0  # transport retries (connect error, timeout, 429, 5xx)
+            self.ask_again = 0  # extractor rejections followed by a new attempt
+            self.advice_ok = 0
+            self.failures: Counter[str] = Counter()  # final failures by kind
+            self.rejected: Counter[str] = Counter()  # rejected answers by kind
+            self.prompt_tokens = 0
+            self.completion_tokens = 0
+            self.latencies: deque[float] = deque(maxlen=self._window)  # per answered HTTP call
+
+    def __getstate__(self) -> dict:
+        d = self.__dict__.copy()
+        d.pop("_lock")
+        return d
+
+    def __setstate__(self, d: dict) -> None:
+        self.__dict__.update(d)
+        self._lock = threading.Lock()
+
+    def add(self, **kw: int) -> None:
+        with self._lock:
+            for k, v in kw.items():
+                setattr(self, k, getattr(self, k) + v)
+
+    def snapshot(self, reset: bool = False) -> dict[str, float]:
+        with self._lock:
+            lat = sorted(self.latencies)
+
+            def q(p: float) -> float:
+                return lat[min(len(lat) - 1, int(p * len(lat)))] if lat else float("nan")
+
+            out: dict[str, float] = {
+                "requests": self.requests, "calls": self.calls, "cache_hits": self.cache_hits,
+                "retries": self.retries, "ask_again": self.ask_again, "advice_ok": self.advice_ok,
+                "failures": sum(self.failures.values()), "prompt_tokens": self.prompt_tokens,
+                "completion_tokens": self.completion_tokens,
+                "latency_p50_s": q(0.50), "latency_p95_s": q(0.95),
+            }
+            out.update({f"failures/{k}": v for k, v in sorted(self.failures.items())})
+            out.update({f"rejected/{k}": v for k, v in sorted(self.rejected.items())})
+        if reset:
+            self.reset()
+        return out
+
+
+class LLMAdvisor:
+    """See the module docstring. ``transport`` (tests) replaces the network layer of httpx."""
+
+    def __init__(self, cfg: Any = None, *, base_url: str | None = None,
+                 transport: httpx.AsyncBaseTransport | None = None):
+        self.cfg: LLMConfig = make_llm_config(cfg)
+        self._base_url = base_url
+        self._transport = transport
+        self.stats = AdvisorStats()
+        self._cache = (AdviceCache(self.cfg.cache_path) if self.cfg.cache_mode != "off"
+                       and self.cfg.cache_path else None)
+        self._init_lazy()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _init_lazy(self) -> None:
+        self._client: httpx.AsyncClient | None = None
+        self._client_loop: asyncio.AbstractEventLoop | None = None
+        self._slots: asyncio.Semaphore | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None  # advise_sync's background loop
+        self._thread: threading.Thread | None = None
+        self._server_cm: contextlib.AbstractContextManager | None = None
+        self._server_url: str | None = None
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        """The client, loop, server and key never travel; a copy re-creates them lazily."""
+        return {"cfg": self.cfg, "_base_url": self._base_url, "stats": self.stats, "_cache": self._cache}
+
+    def __setstate__(self, d: dict) -> None:
+        self.__dict__.update(d)
+        self._transport = None
+        self._init_lazy()
+
+    def __repr__(self) -> str:
+        return (f"LLMAdvisor(model={self.cfg.model!r}, base_url={self.base_url_or_none!r}, "
+                f"cache_mode={self.cfg.cache_mode!r}, fallback={self.cfg.fallback!r})")
+
+    def __enter__(self) -> "LLMAdvisor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the client, stop the background loop and any server this advisor started."""
+        client, loop = self._client, self._client_loop
+        self._client = None
+        if client is not None and loop is not None and not loop.is_closed():
+            if loop is self._loop and loop.is_running():
+                with contextlib.suppress(Exception):
+                    asyncio.run_coroutine_threadsafe(client.aclose(), loop).result(10)
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            if self._thread is not None:
+                self._thread.join(10)
+            with contextlib.suppress(Exception):
+                self._loop.close()
+            self._loop = self._thread = None
+        if self._server_cm is not None:
+            cm, self._server_cm, self._server_url = self._server_cm, None, None
+            cm.__exit__(None, None, None)
+        if self._cache is not None:
+            self._cache.close()
+
+    @property
+    def base_url_or_none(self) -> str | None:
+        return self._base_url or self.cfg.base_url or self._server_url
+
+    def _resolve_base_url(self) -> str:
+        url = self.base_url_or_none
+        if url is not None:
+            return url
+        with self._lock:
+            if self._server_url is None:  # base_url null + server.autostart: start the local one
+                from .server import local_server
+
+                cm = local_server(self.cfg.server)
+                srv = cm.__enter__()
+                self._server_cm, self._server_url = cm, srv.base_url
+                log.info("started local LLM server pid %d at %s", srv.pid, srv.base_url)
+        return self._server_url  # type: ignore[return-value]
+
+    def _api_key(self) -> str | None:
+        name = self.cfg.api_key_env
+        return (os.environ.get(name) or None) if name else None
+
+    def _redact(self, text: str) -> str:
+        key = self._api_key()
+        return text.replace(key, "***") if key else text
+
+    def _http(self) -> tuple[httpx.AsyncClient, asyncio.Semaphore]:
+        loop = asyncio.get_running_loop()
+        if self._client is None or self._client_loop is not loop:
+            limits = httpx.Limits(max_connections=self.cfg.max_concurrency,
+                                  max_keepalive_connections=self.cfg.max_concurrency)
+            self._client = httpx.AsyncClient(transport=self._transport, limits=limits,
+                                             follow_redirects=False, trust_env=False)
+            self._client_loop = loop
+            self._slots = asyncio.Semaphore(self.cfg.max_concurrency)
+        return self._client, self._slots  # type: ignore[return-value]
+
+    # -- request building ------------------------------------------------------------------
+    def _body(self, messages: list[dict], state: AdvisorState, attempt: int) -> dict[str, Any]:
+        c = self.cfg
+        temperature = c.temperature
+        if attempt > 1 and c.retry_temperature is not None:
+            temperature = c.retry_temperature  # greedy decoding would repeat a rejected answer
+        body: dict[str, Any] = {"model": c.model, "messages": messages, "temperature": temperature,
+                                "top_p": c.top_p, "max_tokens": c.max_tokens, "stream": False}
+        if c.seed is not None:
+            body["seed"] = c.seed + attempt - 1
+        v_max = state.limits.v_max
+        if c.response_format == "json_schema":
+            body["response_format"] = {"type": "json_schema", "json_schema": {
+                "name": "uav_action", "strict": True,
+                "schema": action_json_schema(v_max, c.reasoning_max_chars)}}
+        elif c.response_format == "json_object":
+            body["response_format"] = {"type": "json_object"}
+        elif c.response_format == "grammar":
+            from string import Template
+
+            body["grammar"] = Template(template("action.gbnf")).substitute(
+                reasoning_max_chars=c.reasoning_max_chars)
+        return body
+
+    def _key(self, messages: list[dict], state: AdvisorState) -> str:
+        c = self.cfg
+        return cache_key({"model": c.model, "messages": messages, "temperature": c.temperature,
+                          "top_p": c.top_p, "max_tokens": c.max_tokens, "seed": c.seed,
+                          "response_format": c.response_format,
+                          "reasoning_max_chars": c.reasoning_max_chars, "v_max": state.limits.v_max})
+
+    # -- the main API ----------------------------------------------------------------------
+    async def advise(self, states: Sequence[AdvisorState]) -> list[Advice | AdviceFailure]:
+        """One result per state, in order. Raises CacheMissError on a miss in replay_only."""
+        if not states:
+            return []
+        self.stats.add(requests=len(states))
+        prompts = [build_messages(s, self.cfg.prompt_ablation) for s in states]
+        keys = [self._key(m, s) for m, s in zip(prompts, states)]
+        results: list[Advice | AdviceFailure | None] = [None] * len(states)
+        todo: dict[str, list[int]] = {}
+        for i, k in enumerate(keys):
+            hit = self._cache.get(k) if self._cache is not None else None
+            if hit is not None:
+                results[i] = hit
+                self.stats.add(cache_hits=1, advice_ok=1)
+            else:
+                todo.setdefault(k, []).append(i)  # identical prompts share one request
+        if todo and self.cfg.cache_mode == "replay_only":
+            n = sum(len(v) for v in todo.values())
+            raise CacheMissError(f"replay_only: {n} of {len(states)} prompts are not in the cache "
+                                 f"{self._cache.path if self._cache else None} (first key {next(iter(todo))})")
+        if todo:
+            base_url = await asyncio.to_thread(self._resolve_base_url) if self.base_url_or_none is None \
+                else self.base_url_or_none
+            url = base_url.rstrip("/") + "/chat/completions"
+            uniq = list(todo.items())
+            answers = await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k)
+                                             for k, idx in uniq))
+            for (k, idx), a in zip(uniq, answers):
+                for i in idx:
+                    results[i] = a
+        return results  # type: ignore[return-value]
+
+    async def _advise_one(self, url: str, messages: list[dict], state: AdvisorState,
+                          key: str) -> Advice | AdviceFailure:
+        c = self.cfg
+        client, slots = self._http()
+        headers = {"Content-Type": "application/json"}
+        api_key = self._api_key()
+        if api_key:
+            headers["Authorization"] = f"Bearer {api_key}"
+        history: list[FailureKind] = []
+        t0 = time.perf_counter()
+        current = messages
+
+        def on_retry(kind: FailureKind, detail: str) -> None:
+            self.stats.add(retries=1, calls=1)
+            log.debug("LLM request retry (%s): %s", kind.value, self._redact(detail))
+
+        for attempt in range(1, c.max_attempts + 1):
+            try:
+                res = await chat_completion(
+                    client, url, self._body(current, state, attempt), headers, timeout_s=c.timeout_s,
+                    max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
+                    backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
+                    max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry)
+            except RequestFailed as e:
+                self.stats.add(calls=1)
+                return self._fail(e.kind, e.detail, attempt, history)
+            except BadResponse as e:
+                self.stats.add(calls=1)
+                kind, reason = e.kind, e.detail
+            else:
+                self.stats.add(calls=1, prompt_tokens=res.prompt_tokens,
+                               completion_tokens=res.completion_tokens)
+                with self.stats._lock:
+                    self.stats.latencies.append(res.latency_s)
+                try:
+                    advice = extract_action(res.text, state.limits.v_max, max_chars=c.max_response_bytes)
+                except ExtractionError as e:
+                    kind, reason = e.kind, e.detail
+                    if res.finish_reason == "length" and kind in (
+                            FailureKind.INVALID_JSON, FailureKind.NO_JSON, FailureKind.MISSING_KEYS):
+                        kind, reason = FailureKind.TRUNCATED, "the answer was cut off at max_tokens"
+                else:
+                    advice = replace(advice, attempts=attempt, latency_s=time.perf_counter() - t0)
+                    if self._cache is not None and c.cache_mode == "read_write":
+                        self._cache.put(key, c.model, advice)
+                    self.stats.add(advice_ok=1)
+                    return advice
+            history.append(kind)
+            with self.stats._lock:
+                self.stats.rejected[kind.value] += 1
+            log.debug("LLM answer rejected (%s): %s", kind.value, self._redact(reason))
+            if attempt < c.max_attempts:
+                self.stats.add(ask_again=1)
+                current = messages + [retry_message(reason, state.limits)]
+        return self._fail(history[-1], f"no valid action in {c.max_attempts} attempts", c.max_attempts,
+                          history)
+
+    def _fail(self, kind: FailureKind, detail: str, attempts: int,
+              history: list[FailureKind]) -> AdviceFailure:
+        with self.stats._lock:
+            self.stats.failures[kind.value] += 1
+        detail = self._redact(detail)
+        log.warning("LLM advice failed (%s) after %d attempt(s): %s; fallback=%s", kind.value, attempts,
+                    detail, self.cfg.fallback)
+        return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
+                             history=tuple(history))
+
+    # -- sync wrapper for a plain training loop ---------------------------------------------
+    def _background_loop(self) -> asyncio.AbstractEventLoop:
+        with self._lock:
+            if self._loop is None:
+                loop = asyncio.new_event_loop()
+                t = threading.Thread(target=loop.run_forever, name="uavlae-llm-loop", daemon=True)
+                t.start()
+                self._loop, self._thread = loop, t
+        return self._loop
+
+    def advise_sync(self, states: Sequence[AdvisorState], timeout: float | None = None
+                    ) -> list[Advice | AdviceFailure]:
+        """Blocking :meth:`advise`, on one long-lived background loop (safe inside Jupyter too)."""
+        if not states:
+            return []
+        fut = asyncio.run_coroutine_threadsafe(self.advise(states), self._background_loop())
+        return fut.result(timeout)

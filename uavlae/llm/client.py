@@ -1,0 +1,154 @@
+"""One OpenAI-compatible ``/chat/completions`` request with bounded retries (async httpx).
+
+Retried with exponential backoff and jitter: connection errors, timeouts, 5xx, and 429 (after
+``Retry-After`` when the server sends it, capped). Other 4xx fail at once. The whole request,
+body included, has one deadline, and the body is read up to a byte limit, so a slow drip or a
+huge answer can neither hang nor exhaust memory.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import email.utils
+import json
+import random
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import httpx
+
+from .schema import FailureKind
+
+
+@dataclass(frozen=True)
+class ChatResult:
+    text: str | None
+    finish_reason: str | None
+    prompt_tokens: int
+    completion_tokens: int
+    latency_s: float
+
+
+class RequestFailed(Exception):
+    """The server could not be asked (after retries). ``kind`` is a transport FailureKind."""
+
+    def __init__(self, kind: FailureKind, detail: str):
+        super().__init__(f"{kind.value}: {detail}")
+        self.kind, self.detail = kind, detail
+
+
+class BadResponse(Exception):
+    """The server answered 200, but with a body we cannot use (too large, not JSON)."""
+
+    def __init__(self, kind: FailureKind, detail: str):
+        super().__init__(f"{kind.value}: {detail}")
+        self.kind, self.detail = kind, detail
+
+
+class _Retryable(Exception):
+    def __init__(self, kind: FailureKind, detail: str, wait: float | None = None):
+        super().__init__(detail)
+        self.kind, self.detail, self.wait = kind, detail, wait
+
+
+def parse_retry_after(value: str | None) -> float | None:
+    """Seconds from a Retry-After header (delta-seconds or an HTTP date); None if absent/bad."""
+    if not value:
+        return None
+    value = value.strip()
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
+
+
+async def _read_limited(r: httpx.Response, limit: int) -> bytes:
+    declared = r.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise BadResponse(FailureKind.TOO_LARGE, f"response of {declared} bytes > {limit}")
+    buf = bytearray()
+    async for chunk in r.aiter_bytes():
+        buf += chunk
+        if len(buf) > limit:
+            raise BadResponse(FailureKind.TOO_LARGE, f"response over {limit} bytes")
+    return bytes(buf)
+
+
+async def _post_once(client: httpx.AsyncClient, url: str, body: dict, headers: dict,
+                     timeout_s: float, max_bytes: int) -> ChatResult:
+    t0 = time.perf_counter()
+    async with client.stream("POST", url, json=body, headers=headers, timeout=timeout_s) as r:
+        if r.status_code == 429:
+            raise _Retryable(FailureKind.RATE_LIMITED, "HTTP 429",
+                             parse_retry_after(r.headers.get("retry-after")))
+        if r.status_code >= 500:
+            raise _Retryable(FailureKind.SERVER_ERROR, f"HTTP {r.status_code}")
+        if r.status_code >= 400:
+            snippet = (await _read_limited(r, 1 << 20))[:300].decode("utf-8", "replace")
+            raise RequestFailed(FailureKind.HTTP_ERROR, f"HTTP {r.status_code}: {snippet}")
+        raw = await _read_limited(r, max_bytes)
+    latency = time.perf_counter() - t0
+    try:
+        data = json.loads(raw)
+        choice = data["choices"][0]
+        text = choice.get("message", {}).get("content")
+        finish = choice.get("finish_reason")
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
+        raise BadResponse(FailureKind.INVALID_JSON, f"not a chat completion ({type(e).__name__})") from None
+    usage = data.get("usage") or {}
+    return ChatResult(
+        text=text if isinstance(text, str) else None,
+        finish_reason=finish if isinstance(finish, str) else None,
+        prompt_tokens=int(usage.get("prompt_tokens") or 0),
+        completion_tokens=int(usage.get("completion_tokens") or 0),
+        latency_s=latency,
+    )
+
+
+async def chat_completion(
+    client: httpx.AsyncClient,
+    url: str,
+    body: dict[str, Any],
+    headers: dict[str, str],
+    *,
+    timeout_s: float,
+    max_retries: int,
+    backoff_base_s: float,
+    backoff_max_s: float,
+    retry_after_max_s: float,
+    max_response_bytes: int,
+    slot: asyncio.Semaphore | None = None,
+    on_retry: Callable[[FailureKind, str], None] | None = None,
+) -> ChatResult:
+    """POST ``body`` to ``url``; raise RequestFailed after ``max_retries`` retries, or BadResponse."""
+    last: _Retryable | None = None
+    for retry in range(max_retries + 1):
+        try:
+            if slot is not None:
+                async with slot:
+                    async with asyncio.timeout(timeout_s):
+                        return await _post_once(client, url, body, headers, timeout_s, max_response_bytes)
+            async with asyncio.timeout(timeout_s):
+                return await _post_once(client, url, body, headers, timeout_s, max_response_bytes)
+        except _Retryable as e:
+            last = e
+        except (TimeoutError, httpx.TimeoutException):
+            last = _Retryable(FailureKind.TIMEOUT, f"no complete answer within {timeout_s:g} s")
+        except httpx.TransportError as e:  # connect refused/reset, protocol errors
+            last = _Retryable(FailureKind.CONNECTION, f"{type(e).__name__}: {e}")
+        if retry == max_retries:
+            break
+        wait = min(backoff_max_s, backoff_base_s * 2**retry) * (0.5 + random.random() / 2)
+        if last.wait is not None:  # Retry-After, honoured up to the cap
+            wait = min(last.wait, retry_after_max_s)
+        if on_retry is not None:
+            on_retry(last.kind, last.detail)
+        await asyncio.sleep(wait)
+    assert last is not None
+    raise RequestFailed(last.kind, f"{last.detail} (after {max_retries} retries)")

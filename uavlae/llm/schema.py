@@ -1,0 +1,106 @@
+"""What the advisor returns: a validated velocity, or a typed failure the caller acts on."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class FailureKind(str, Enum):
+    # transport: retried with backoff up to max_retries, then final
+    TIMEOUT = "timeout"
+    CONNECTION = "connection"
+    RATE_LIMITED = "rate_limited"  # 429 after the retries
+    SERVER_ERROR = "server_error"  # 5xx after the retries
+    HTTP_ERROR = "http_error"  # other 4xx (bad request, auth): not retried
+    # content: the extractor rejects the answer; asked again up to max_attempts
+    TOO_LARGE = "too_large"
+    EMPTY = "empty"
+    NO_JSON = "no_json"
+    INVALID_JSON = "invalid_json"
+    MISSING_KEYS = "missing_keys"
+    NON_FINITE = "non_finite"
+    INVALID_VALUE = "invalid_value"
+    OVER_SPEED = "over_speed"
+    TRUNCATED = "truncated"  # finish_reason == "length" and no valid action
+
+    @property
+    def is_transport(self) -> bool:
+        return self in _TRANSPORT
+
+
+_TRANSPORT = {FailureKind.TIMEOUT, FailureKind.CONNECTION, FailureKind.RATE_LIMITED,
+              FailureKind.SERVER_ERROR, FailureKind.HTTP_ERROR}
+
+
+class ActionSchema(BaseModel):
+    """The strict JSON object of the prompt's part (c). Bounds are checked by the extractor."""
+
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, populate_by_name=True)
+
+    vx: float
+    vy: float
+    Confidence: float
+    Reasoning: str
+
+
+def action_json_schema(v_max: float, reasoning_max_chars: int) -> dict[str, Any]:
+    """JSON schema sent as ``response_format``. Servers may ignore the numeric bounds."""
+    return {
+        "type": "object",
+        "properties": {
+            "vx": {"type": "number", "minimum": -v_max, "maximum": v_max},
+            "vy": {"type": "number", "minimum": -v_max, "maximum": v_max},
+            "Confidence": {"type": "number", "minimum": 0, "maximum": 1},
+            "Reasoning": {"type": "string", "maxLength": reasoning_max_chars},
+        },
+        "required": ["vx", "vy", "Confidence", "Reasoning"],
+        "additionalProperties": False,
+    }
+
+
+@dataclass(frozen=True)
+class Advice:
+    """A validated velocity (m/s). ``source`` is "llm" or "cache"."""
+
+    vx: float
+    vy: float
+    confidence: float
+    reasoning: str
+    attempts: int = 1  # server answers it took (0 for a cache hit)
+    source: str = "llm"
+    latency_s: float = 0.0
+
+    ok = True
+
+    def action(self, v_max: float) -> tuple[float, float]:
+        """The env action a in [-1, 1]^2 with v = v_max * a (SPEC §2)."""
+        return (self.vx / v_max, self.vy / v_max)
+
+
+@dataclass(frozen=True)
+class AdviceFailure:
+    """No valid action. ``fallback`` is the configured policy the CALLER must apply:
+    "end_episode" (paper), "policy" (use the SAC action) or "heuristic"."""
+
+    kind: FailureKind
+    detail: str
+    attempts: int
+    fallback: str
+    history: tuple[FailureKind, ...] = field(default_factory=tuple)  # kind of each rejected try
+
+    ok = False
+
+
+class ExtractionError(ValueError):
+    def __init__(self, kind: FailureKind, detail: str):
+        super().__init__(f"{kind.value}: {detail}")
+        self.kind = kind
+        self.detail = detail
+
+
+class CacheMissError(RuntimeError):
+    """replay_only cache mode met a prompt it has no answer for."""

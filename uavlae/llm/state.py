@@ -1,0 +1,163 @@
+"""Plain data the prompt generator reads: one batch element's raw state and the world limits.
+
+Nothing here imports the rest of uavlae. :func:`advisor_states_from_tensordict` reads the env's
+raw ``("state", NAME)`` entries (docs/env_contract.md) with torch/tensordict only, so this
+package can be tested on a hand-built TensorDict before, and independently of, the env.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+Rect = tuple[float, float, float, float]  # (x0, y0, x1, y1): south-west and north-east corners
+
+
+@dataclass(frozen=True)
+class WorldLimits:
+    """The env-config numbers the prompt quotes (never hard-coded in a template)."""
+
+    x_size: float
+    y_size: float
+    v_max: float
+    v_limit: float
+    perception_radius: float
+    landing: Rect
+    e_limit: float
+
+    @classmethod
+    def from_env_config(cls, cfg: Any) -> "WorldLimits":
+        """Read an ``EnvConfig`` (or anything shaped like it) by attribute, without importing it."""
+        return cls(
+            x_size=float(cfg.area.x_size),
+            y_size=float(cfg.area.y_size),
+            v_max=float(cfg.motion.v_max),
+            v_limit=float(cfg.motion.v_limit),
+            perception_radius=float(cfg.safety.perception_radius),
+            landing=tuple(float(v) for v in cfg.area.landing),  # type: ignore[arg-type]
+            e_limit=float(cfg.energy.e_limit),
+        )
+
+
+@dataclass(frozen=True)
+class GroundEquipment:
+    x: float
+    y: float
+    remaining: float  # data still to collect
+
+
+@dataclass(frozen=True)
+class OtherUAV:
+    x: float
+    y: float
+    vx: float
+    vy: float
+    distance: float
+
+
+@dataclass(frozen=True)
+class AdvisorState:
+    """One batch element, unnormalised. Distances are to the nearest of each kind (inf: none)."""
+
+    position: tuple[float, float]
+    velocity: tuple[float, float]
+    energy_left: float
+    limits: WorldLimits
+    ges: tuple[GroundEquipment, ...] = ()  # only GEs with remaining data
+    nfz: tuple[Rect, ...] = ()
+    rz: tuple[Rect, ...] = ()
+    bz: tuple[Rect, ...] = ()
+    ous: tuple[OtherUAV, ...] = ()  # only OUs within the perception radius, nearest first
+    d_bz: float = math.inf
+    d_nfz: float = math.inf
+    d_rz: float = math.inf
+    d_ou: float = math.inf
+    d_boundary: float = math.inf
+    d_la: float = math.inf
+    extra: dict[str, float] = field(default_factory=dict)  # free slot for callers; not in the prompt
+
+    @property
+    def in_rz(self) -> bool:
+        x, y = self.position
+        return any(r[0] <= x <= r[2] and r[1] <= y <= r[3] for r in self.rz)
+
+
+_DISTANCES = ("d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la")
+
+
+def _rows(td: Any, idx: Any) -> list[int]:
+    import torch
+
+    if isinstance(idx, torch.Tensor):
+        if idx.dtype == torch.bool:
+            return [int(i) for i in idx.reshape(-1).nonzero().reshape(-1).tolist()]
+        return [int(i) for i in idx.reshape(-1).tolist()]
+    if isinstance(idx, int):
+        return [idx]
+    return [int(i) for i in idx]
+
+
+def advisor_states_from_tensordict(
+    td: Any, idx: Sequence[int] | Any, limits: WorldLimits, *, ge_eps: float = 1e-9
+) -> list[AdvisorState]:
+    """Build one :class:`AdvisorState` per selected row of a ``[B]`` tensordict.
+
+    ``td`` holds the ``("state", NAME)`` entries of the env contract (the root after reset, or
+    ``td["next"]`` after a step). ``idx`` is a list of row indices or a ``[B]`` bool mask.
+    OUs are kept only within ``limits.perception_radius`` (nearest first); GEs only with
+    remaining data > ``ge_eps``; zones only where their mask is set.
+    """
+    rows = _rows(td, idx)
+    if not rows:
+        return []
+    import torch
+
+    sel = torch.as_tensor(rows, dtype=torch.long)
+    s = td.get("state")
+
+    def take(name: str) -> list:
+        return s.get(name).detach()[sel.to(s.get(name).device)].cpu().tolist()
+
+    pos, vel, energy = take("position"), take("velocity"), take("energy_left")
+    ge_pos, ge_rem, ge_mask = take("ge_pos"), take("ge_remaining"), take("ge_mask")
+    ou_pos, ou_vel, ou_mask = take("ou_pos"), take("ou_vel"), take("ou_mask")
+    zones = {k: (take(k), take(f"{k}_mask")) for k in ("nfz", "rz", "bz")}
+    dists = {k: take(k) for k in _DISTANCES}
+    pr = limits.perception_radius
+
+    out = []
+    for j in range(len(rows)):
+        x, y = float(pos[j][0]), float(pos[j][1])
+        ges = tuple(
+            GroundEquipment(float(p[0]), float(p[1]), float(r))
+            for p, r, m in zip(ge_pos[j], ge_rem[j], ge_mask[j])
+            if m and r > ge_eps
+        )
+        ous = []
+        for p, v, m in zip(ou_pos[j], ou_vel[j], ou_mask[j]):
+            if not m:
+                continue
+            d = math.hypot(p[0] - x, p[1] - y)
+            if d <= pr:
+                ous.append(OtherUAV(float(p[0]), float(p[1]), float(v[0]), float(v[1]), d))
+        ous.sort(key=lambda o: o.distance)
+        rects = {
+            k: tuple(tuple(float(c) for c in r) for r, m in zip(rects[j], masks[j]) if m)
+            for k, (rects, masks) in zones.items()
+        }
+        out.append(
+            AdvisorState(
+                position=(x, y),
+                velocity=(float(vel[j][0]), float(vel[j][1])),
+                energy_left=float(energy[j]),
+                limits=limits,
+                ges=ges,
+                nfz=rects["nfz"],  # type: ignore[arg-type]
+                rz=rects["rz"],  # type: ignore[arg-type]
+                bz=rects["bz"],  # type: ignore[arg-type]
+                ous=tuple(ous),
+                **{k: float(dists[k][j]) for k in _DISTANCES},
+            )
+        )
+    return out
