@@ -207,6 +207,9 @@ class SamplingConfig(_Strict):
     rect_tries: int = Field(200, ge=1)  # placements tried per rectangle
     point_tries: int = Field(200, ge=1)  # placements tried per GE / OU
     layout_tries: int = Field(50, ge=1)  # whole-layout resamples before giving up
+    # Scenarios for partial resets are drawn from a pool sampled this many at a time: sampling
+    # is vectorised, so one draw of 256 costs about as much as one draw of 1.
+    pool_size: int = Field(256, ge=0)
 
 
 class EnvConfig(_Strict):
@@ -224,6 +227,7 @@ class EnvConfig(_Strict):
     t_max: int = Field(1000, ge=1)  # [decision] truncation
     terminate_on_collision: bool = True
     extra_features: bool = True  # [decision] distances to nearest BZ/NFZ/RZ/boundary/LA, in-RZ flag
+    obs_distance_scale: float = Field(50.0, gt=0)  # obstacle distances in the observation saturate here
 
     @model_validator(mode="after")
     def _zones_fit(self) -> "EnvConfig":

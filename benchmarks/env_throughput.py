@@ -1,0 +1,131 @@
+"""Env-steps per second: UAVEnv through the TorchRL API vs the gymnasium adapter, side by side.
+
+    python benchmarks/env_throughput.py [--batches 1 64 1024 4096] [--seconds 3] [--device cpu]
+
+Both paths run the same world (``world_step``). The TorchRL path is the loop a collector runs:
+``step_and_maybe_reset`` with a policy's actions written into the tensordict, so partial resets
+(fresh scenarios for finished rows) are included. The reference steps one scenario at a time
+through ``UAVGymEnv`` with numpy actions. Writes ``benchmarks/env_throughput.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def machine() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info = {
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "cpu": cpu,
+        "logical_cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+    }
+    if torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def bench_torchrl(batch: int, seconds: float, device: str, seed: int = 0) -> dict:
+    from uavlae.envs import UAVEnv
+
+    env = UAVEnv(batch_size=[batch], device=device, seed=seed)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    td = env.reset()
+    # the policy: uniform random actions drawn outside the timed region's env code
+    n_pre = 64
+    actions = torch.rand(n_pre, batch, 2, generator=gen, device=device) * 2 - 1
+    for i in range(5):  # warm-up (allocator, first resets)
+        td["action"] = actions[i % n_pre]
+        _, td = env.step_and_maybe_reset(td)
+    _sync(device)
+    steps, t0 = 0, time.perf_counter()
+    while True:
+        td["action"] = actions[steps % n_pre]
+        _, td = env.step_and_maybe_reset(td)
+        steps += 1
+        if steps % 10 == 0:
+            _sync(device)
+            if time.perf_counter() - t0 >= seconds:
+                break
+    _sync(device)
+    dt = time.perf_counter() - t0
+    return {"batch": batch, "calls": steps, "seconds": dt, "env_steps_per_s": steps * batch / dt,
+            "ms_per_call": 1e3 * dt / steps}
+
+
+def bench_gym(seconds: float, seed: int = 0) -> dict:
+    import numpy as np
+
+    from uavlae.envs.gym_adapter import UAVGymEnv
+
+    env = UAVGymEnv()
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    actions = rng.uniform(-1, 1, size=(1024, 2)).astype(np.float32)
+    steps, episodes, t0 = 0, 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for _ in range(50):
+            _, _, term, trunc, _ = env.step(actions[steps % 1024])
+            steps += 1
+            if term or trunc:
+                env.reset()
+                episodes += 1
+    dt = time.perf_counter() - t0
+    return {"batch": 1, "calls": steps, "seconds": dt, "env_steps_per_s": steps / dt,
+            "episodes": episodes}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
+    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=int(os.environ.get("UAVLAE_NUM_THREADS", "1")))
+    ap.add_argument("--out", default=str(Path(__file__).with_name("env_throughput.json")))
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    gym = bench_gym(args.seconds)
+    print(f"gymnasium adapter, one scenario at a time: {gym['env_steps_per_s']:,.0f} env-steps/s")
+    rows = []
+    for b in args.batches:
+        r = bench_torchrl(b, args.seconds, args.device)
+        r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
+        rows.append(r)
+        print(f"UAVEnv B={b:>5} ({args.device}): {r['env_steps_per_s']:>12,.0f} env-steps/s  "
+              f"{r['ms_per_call']:7.2f} ms/call  x{r['ratio_vs_gym']:.1f} vs gym")
+    result = {"machine": machine(), "device": args.device, "threads": args.threads,
+              "seconds_per_measurement": args.seconds, "gym": gym, "torchrl": rows,
+              "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+    out = Path(args.out)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=2) + "\n")
+    tmp.replace(out)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,229 @@
+"""``UAVEnv``: the batched data-collection world as a TorchRL ``EnvBase``.
+
+The physics is :func:`uavlae.envs.world.world_step`; this class only declares the specs and
+moves the raw state between the tensordict and that function. The state lives in the
+tensordict under ``("state", NAME)`` (docs/env_contract.md), so a rollout carries it step to
+step and a partial reset only touches the rows it names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.envs.scenario import Scenario, sample_scenarios, stack_scenarios
+from uavlae.envs.world import (
+    EVENT_KEYS,
+    REWARD_KEYS,
+    STATE_KEYS,
+    ObservationLayout,
+    initial_state,
+    world_step,
+)
+
+_BOOL_STATE = {"nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"}
+_INT_STATE = {"step", "served_ge"}
+
+
+class UAVEnv(EnvBase):
+    """Many independent scenarios of the paper's world, stepped at once.
+
+    Args:
+        cfg: an :class:`EnvConfig`, a mapping or an OmegaConf node (validated); ``None`` gives
+            SPEC.md's defaults.
+        batch_size: ``[B]``, the number of scenarios stepped together.
+        device: where the tensors live.
+        seed: seeds the env's own ``torch.Generator`` (scenario sampling, OU motion, ties).
+        scenarios: optional fixed scenarios (a list of :class:`Scenario`, or a batched scenario
+            TensorDict); batch row ``i`` is always reset to scenario ``i % len(scenarios)``.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        cfg: EnvConfig | dict | Any = None,
+        *,
+        batch_size: Sequence[int] | torch.Size | int = (1,),
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+        scenarios: Sequence[Scenario] | TensorDictBase | None = None,
+    ):
+        self.cfg = make_env_config(cfg)
+        if isinstance(batch_size, int):
+            batch_size = (batch_size,)
+        batch_size = torch.Size(batch_size)
+        if len(batch_size) != 1 or batch_size[0] < 1:
+            raise ValueError(f"UAVEnv needs a one-dimensional batch_size [B] with B >= 1, got {list(batch_size)}")
+        super().__init__(device=device, batch_size=batch_size)
+        self.layout = ObservationLayout(self.cfg)
+        self._fixed: TensorDictBase | None = None
+        self._pool: TensorDictBase | None = None
+        self._pool_pos = 0
+        if scenarios is not None:
+            self.set_scenarios(scenarios)
+        self._make_specs()
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.set_seed(seed)
+
+    # ------------------------------------------------------------------ set-up
+    def set_scenarios(self, scenarios: Sequence[Scenario] | TensorDictBase | None) -> None:
+        """Reset to these scenarios from now on (``None``: sample again)."""
+        if scenarios is None:
+            self._fixed = None
+            return
+        if isinstance(scenarios, TensorDictBase):
+            td = scenarios
+        else:
+            scenarios = list(scenarios)
+            if not scenarios:
+                raise ValueError("scenarios must contain at least one Scenario")
+            td = stack_scenarios(scenarios, self.cfg)
+        self._fixed = td.to(self.device)
+
+    def _make_specs(self) -> None:
+        b, c = self.batch_size, self.cfg
+        B = b[0]
+        g, k = self.layout.n_ge, self.layout.n_ou
+        n_nfz, n_rz, n_bz = self.layout.n_zone
+        f = torch.float32
+
+        def u(*shape, dtype=f):
+            return Unbounded(shape=(B, *shape), dtype=dtype, device=self.device)
+
+        def flag(*shape):
+            return Categorical(2, shape=(B, *shape), dtype=torch.bool, device=self.device)
+
+        shapes: dict[str, tuple[int, ...]] = {
+            "nfz": (n_nfz, 4), "nfz_mask": (n_nfz,), "rz": (n_rz, 4), "rz_mask": (n_rz,),
+            "bz": (n_bz, 4), "bz_mask": (n_bz,), "ge_pos": (g, 2), "ge_mask": (g,),
+            "takeoff": (4,), "landing": (4,), "data_total": (), "position": (2,), "velocity": (2,),
+            "energy_used": (), "energy_left": (), "slot_data": (), "data_collected": (),
+            "step": (), "ge_remaining": (g,), "ou_pos": (k, 2), "ou_vel": (k, 2),
+            "ou_mask": (k,), "served_ge": (), "d_bz": (), "d_nfz": (), "d_rz": (), "d_ou": (),
+            "d_boundary": (), "d_la": (),
+        }
+        assert set(shapes) == set(STATE_KEYS)
+        state = {}
+        for key in STATE_KEYS:
+            if key in _BOOL_STATE:
+                state[key] = flag(*shapes[key])
+            elif key in _INT_STATE:
+                state[key] = u(*shapes[key], dtype=torch.int64)
+            else:
+                state[key] = u(*shapes[key])
+        self.observation_spec = Composite(
+            observation=u(self.layout.size),
+            state=Composite(state, shape=b, device=self.device),
+            reward_terms=Composite({n: u(1) for n in REWARD_KEYS}, shape=b, device=self.device),
+            events=Composite({n: flag(1) for n in EVENT_KEYS}, shape=b, device=self.device),
+            cost=u(1),
+            shape=b,
+            device=self.device,
+        )
+        self.action_spec = Bounded(-1.0, 1.0, shape=(B, 2), dtype=f, device=self.device)
+        self.reward_spec = u(1)
+        self.done_spec = Composite(
+            done=flag(1), terminated=flag(1), truncated=flag(1), shape=b, device=self.device
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        rng = torch.Generator(device=self.device)
+        rng.manual_seed(int(seed) if seed is not None else 0)
+        self.rng = rng
+        self._pool, self._pool_pos = None, 0  # a new seed starts a new scenario stream
+
+    # ------------------------------------------------------------------ data in / out
+    def _scenarios_for(self, rows: torch.Tensor) -> TensorDictBase:
+        """A batched scenario of size B whose rows listed in ``rows`` are fresh."""
+        B = self.batch_size[0]
+        if self._fixed is not None:
+            n = self._fixed.batch_size[0]
+            return self._fixed[torch.arange(B, device=self.device) % n]
+        n = int(rows.sum().item()) if rows is not None else B
+        fresh = self._draw(max(n, 1))
+        if n == B:
+            return fresh
+        pos = (torch.cumsum(rows.long(), 0) - 1).clamp(min=0)
+        return fresh[pos]
+
+    def _draw(self, n: int) -> TensorDictBase:
+        """``n`` fresh scenarios, taken in order from a pool refilled ``pool_size`` at a time."""
+        size = self.cfg.sampling.pool_size
+        if size == 0:
+            return sample_scenarios(self.cfg, n, self.rng, device=self.device)
+        have = 0 if self._pool is None else self._pool.batch_size[0] - self._pool_pos
+        if have < n:
+            fresh = sample_scenarios(self.cfg, max(size, n - have), self.rng, device=self.device)
+            rest = self._pool[self._pool_pos:] if have else None
+            self._pool = fresh if rest is None else torch.cat([rest, fresh], 0)
+            self._pool_pos = 0
+        out = self._pool[self._pool_pos : self._pool_pos + n]
+        self._pool_pos += n
+        return out
+
+    def _output(
+        self,
+        state: dict[str, torch.Tensor],
+        events: dict[str, torch.Tensor],
+        terms: dict[str, torch.Tensor],
+        cost: torch.Tensor,
+        reward: torch.Tensor,
+        terminated: torch.Tensor,
+        truncated: torch.Tensor,
+    ) -> TensorDict:
+        b = self.batch_size
+        out = TensorDict(
+            {
+                "observation": self.layout.build(state),
+                "state": TensorDict(state, batch_size=b),
+                "reward_terms": TensorDict({k: t.unsqueeze(-1) for k, t in terms.items()}, batch_size=b),
+                "events": TensorDict({k: e.unsqueeze(-1) for k, e in events.items()}, batch_size=b),
+                "cost": cost.unsqueeze(-1),
+                "reward": reward.unsqueeze(-1),
+                "done": (terminated | truncated).unsqueeze(-1),
+                "terminated": terminated.unsqueeze(-1),
+                "truncated": truncated.unsqueeze(-1),
+            },
+            batch_size=b,
+            device=self.device,
+        )
+        return out
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        rows = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            rows = tensordict.get("_reset").reshape(self.batch_size)
+            if bool(rows.all()):
+                rows = None
+        scen = self._scenarios_for(rows)
+        state = initial_state(scen.to_dict(), self.cfg)
+        B = self.batch_size[0]
+        zf = torch.zeros(B, device=self.device)
+        zb = torch.zeros(B, device=self.device, dtype=torch.bool)
+        out = self._output(
+            state,
+            {k: zb for k in EVENT_KEYS},
+            {k: zf for k in REWARD_KEYS},
+            zf,
+            zf,
+            zb,
+            zb,
+        )
+        del out["reward"]
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        st = tensordict.get("state")
+        state = {k: st.get(k) for k in STATE_KEYS}
+        action = tensordict.get("action")
+        nxt, events, terms, cost, terminated, truncated = world_step(state, action, self.cfg, self.rng)
+        reward = torch.stack(list(terms.values()), dim=0).sum(0)
+        return self._output(nxt, events, terms, cost, reward, terminated, truncated)

@@ -1,0 +1,224 @@
+"""One slot of the world as a pure function of tensors (SPEC.md §2-§7).
+
+``world_step`` takes the raw state (a dict of tensors with leading batch shape ``[B]``), the
+action and a ``torch.Generator`` and returns the next state, the events, every reward term,
+the cost and the termination flags. Nothing here knows about TorchRL: ``UAVEnv`` only moves
+these dicts in and out of its tensordicts.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from uavlae.envs import physics as ph
+from uavlae.envs.config import EnvConfig
+
+STATIC_KEYS = (
+    "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask",
+    "ge_pos", "ge_mask", "takeoff", "landing", "data_total",
+)
+DYNAMIC_KEYS = (
+    "position", "velocity", "energy_used", "energy_left", "slot_data", "data_collected",
+    "step", "ge_remaining", "ou_pos", "ou_vel", "ou_mask", "served_ge",
+    "d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la",
+)
+STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
+EVENT_KEYS = (
+    "bz_collision", "nfz_entry", "ou_collision", "boundary_exit", "rz_speeding", "landed",
+    "energy_exhausted",
+)
+REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5", "r6", "r7", "r8", "r9", "landing", "crash")
+
+
+def _rect_tensor(rect, batch: int, device, dtype=torch.float32) -> Tensor:
+    return torch.tensor(rect, device=device, dtype=dtype).expand(batch, 4).clone()
+
+
+def nearest_distances(state: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
+    """Distances from the DCU to the nearest BZ, NFZ, RZ, OU, boundary and LA (0 inside)."""
+    p = state["position"]
+    d_ou = torch.linalg.vector_norm(state["ou_pos"] - p.unsqueeze(-2), dim=-1)
+    d_ou = d_ou.masked_fill(~state["ou_mask"], float("inf"))
+    la = state["landing"].unsqueeze(-2)
+    la_mask = torch.ones(la.shape[:-1], dtype=torch.bool, device=p.device)
+    return {
+        "d_bz": ph.nearest_distance(ph.point_rect_distance(p, state["bz"], state["bz_mask"])),
+        "d_nfz": ph.nearest_distance(ph.point_rect_distance(p, state["nfz"], state["nfz_mask"])),
+        "d_rz": ph.nearest_distance(ph.point_rect_distance(p, state["rz"], state["rz_mask"])),
+        "d_ou": ph.nearest_distance(d_ou),
+        "d_boundary": ph.boundary_distance(p, cfg.area.x_size, cfg.area.y_size),
+        "d_la": ph.point_rect_distance(p, la, la_mask).squeeze(-1),
+    }
+
+
+def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
+    """The state at the start of an episode from a batched scenario (docs/env_contract.md)."""
+    start = scen["start"]
+    b, device = start.shape[0], start.device
+    zeros = torch.zeros(b, device=device, dtype=start.dtype)
+    ge_data = scen["ge_data"] * scen["ge_mask"]
+    state = {
+        "nfz": scen["nfz"], "nfz_mask": scen["nfz_mask"],
+        "rz": scen["rz"], "rz_mask": scen["rz_mask"],
+        "bz": scen["bz"], "bz_mask": scen["bz_mask"],
+        "ge_pos": scen["ge_pos"], "ge_mask": scen["ge_mask"],
+        "takeoff": _rect_tensor(cfg.area.takeoff, b, device),
+        "landing": _rect_tensor(cfg.area.landing, b, device),
+        "data_total": ge_data.sum(-1),
+        "position": start.clone(),
+        "velocity": torch.zeros_like(start),
+        "energy_used": zeros.clone(),
+        "energy_left": torch.full_like(zeros, cfg.energy.e_limit),
+        "slot_data": zeros.clone(),
+        "data_collected": zeros.clone(),
+        "step": torch.zeros(b, device=device, dtype=torch.int64),
+        "ge_remaining": ge_data.clone(),
+        "ou_pos": scen["ou_pos"].clone(),
+        "ou_vel": scen["ou_vel"] * scen["ou_mask"].unsqueeze(-1),
+        "ou_mask": scen["ou_mask"],
+        "served_ge": torch.full((b,), -1, device=device, dtype=torch.int64),
+    }
+    state.update(nearest_distances(state, cfg))
+    return state
+
+
+def world_step(
+    state: dict[str, Tensor], action: Tensor, cfg: EnvConfig, generator: torch.Generator
+) -> tuple[dict[str, Tensor], dict[str, Tensor], dict[str, Tensor], Tensor, Tensor, Tensor]:
+    """Advance every batch element by one slot Δt = t_fly + t_hover.
+
+    Returns ``(next_state, events, reward_terms, cost, terminated, truncated)``; events and
+    flags are bool ``[B]``, reward terms and cost float ``[B]``.
+    """
+    m, a = cfg.motion, cfg.area
+    p0 = state["position"]
+    # Eq. (1): L_{t+1} = L_t + v t_fly, |v| <= v_max
+    v = ph.action_to_velocity(action, m.v_max)
+    speed = torch.linalg.vector_norm(v, dim=-1)
+    p1_raw = p0 + v * m.t_fly
+    boundary_exit = ph.outside_area(p1_raw, a.x_size, a.y_size)
+    p1 = ph.clip_to_area(p1_raw, a.x_size, a.y_size)
+
+    # Other UAVs move during the same flight phase; collisions use the closest approach.
+    ou_pos, ou_mask = state["ou_pos"], state["ou_mask"]
+    blocked = torch.cat([state["bz"], state["nfz"]], dim=-2)
+    blocked_mask = torch.cat([state["bz_mask"], state["nfz_mask"]], dim=-1)
+    ou_new, ou_vel = ph.ou_step(
+        ou_pos, state["ou_vel"], ou_mask, blocked, blocked_mask, a.x_size, a.y_size, cfg.ou, m, generator
+    )
+    ou_u = (ou_new - ou_pos) / m.t_fly
+    approach = ph.closest_approach(p0, v, ou_pos, ou_u, m.t_fly)
+    ou_collision = ((approach < cfg.safety.r_coll) & ou_mask).any(-1)
+    bz_collision = ph.segment_hits_rects(p0, p1_raw, state["bz"], state["bz_mask"]).any(-1)
+    nfz_entry = ph.segment_hits_rects(p0, p1_raw, state["nfz"], state["nfz_mask"]).any(-1)
+    in_rz = ph.segment_hits_rects(p0, p1, state["rz"], state["rz_mask"]).any(-1)
+    rz_speeding = in_rz & (speed > m.v_limit)
+
+    # Hover phase at L_{t+1}: TDMA service of at most one GE (SPEC §3).
+    snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
+    tie = torch.rand(snr.shape, generator=generator, device=snr.device, dtype=snr.dtype)
+    td, served, remaining = ph.serve_ge(
+        snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
+    )
+    energy_used = state["energy_used"] + ph.slot_energy(speed, cfg.energy, m)
+    energy_left = cfg.energy.e_limit - energy_used
+    data_collected = state["data_collected"] + td
+
+    nxt = {k: state[k] for k in STATIC_KEYS}
+    nxt.update(
+        position=p1, velocity=v, energy_used=energy_used, energy_left=energy_left, slot_data=td,
+        data_collected=data_collected, step=state["step"] + 1, ge_remaining=remaining,
+        ou_pos=ou_new, ou_vel=ou_vel, ou_mask=ou_mask, served_ge=served,
+    )
+    nxt.update(nearest_distances(nxt, cfg))
+
+    all_collected = ~(remaining > 0).any(-1)
+    in_la = ph.point_in_rects(p1, nxt["landing"].unsqueeze(-2), torch.ones_like(speed, dtype=torch.bool).unsqueeze(-1)).squeeze(-1)
+    collided = bz_collision | nfz_entry | ou_collision
+    crashed = collided & cfg.terminate_on_collision
+    landed = in_la & ((speed <= m.v_land) | all_collected) & ~crashed
+    energy_exhausted = energy_left <= 0
+    terminated = landed | energy_exhausted | crashed
+    truncated = (nxt["step"] >= cfg.t_max) & ~terminated
+
+    events = {
+        "bz_collision": bz_collision, "nfz_entry": nfz_entry, "ou_collision": ou_collision,
+        "boundary_exit": boundary_exit, "rz_speeding": rz_speeding, "landed": landed,
+        "energy_exhausted": energy_exhausted,
+    }
+    e_min = ph.min_return_energy(nxt["d_la"], cfg.energy, m)
+    excess = torch.where(rz_speeding, (speed - m.v_limit) / (m.v_max - m.v_limit), torch.zeros_like(speed))
+    terms = ph.reward_terms(
+        collected=td > 0, d_ou=nxt["d_ou"], d_bz=nxt["d_bz"], d_nfz=nxt["d_nfz"],
+        rz_speeding_excess=excess, d_boundary=nxt["d_boundary"], outside=boundary_exit,
+        d_la=nxt["d_la"], all_collected=all_collected, energy_left=energy_left, e_min=e_min,
+        landed=landed, crashed=crashed, cfg=cfg,
+    )
+    cost = ph.cost(events, cfg.cost)
+    return nxt, events, terms, cost, terminated, truncated
+
+
+class ObservationLayout:
+    """Normalisation constants and sizes of the flat observation (SPEC §6)."""
+
+    def __init__(self, cfg: EnvConfig):
+        self.cfg = cfg
+        self.n_ge = cfg.ge.count.padded
+        self.n_ou = cfg.ou.count.padded
+        self.n_zone = (cfg.zones.n_nfz.padded, cfg.zones.n_rz.padded, cfg.zones.n_bz.padded)
+        self.extra = cfg.extra_features
+        self.size = (
+            5 * self.n_ge + 5 * sum(self.n_zone) + 5 * self.n_ou + 14 + (6 if self.extra else 0)
+        )
+
+    def build(self, s: dict[str, Tensor]) -> Tensor:
+        cfg = self.cfg
+        a, m = cfg.area, cfg.motion
+        p = s["position"]
+        b = p.shape[0]
+        scale2 = p.new_tensor([a.x_size, a.y_size])
+        scale4 = p.new_tensor([a.x_size, a.y_size, a.x_size, a.y_size])
+        parts = []
+        # GEs: position, remaining data, transmit power, presence
+        ge_mask = s["ge_mask"].to(p.dtype)
+        parts += [
+            (s["ge_pos"] / scale2).flatten(1),
+            s["ge_remaining"] / cfg.ge.data_max,
+            ge_mask,  # TP / TP: every present GE transmits at the configured power
+            ge_mask,
+        ]
+        # Zones: south-west corner, length, width (normalised), presence
+        for name in ("nfz", "rz", "bz"):
+            r = s[name]
+            zone = torch.cat([r[..., :2], r[..., 2:] - r[..., :2]], dim=-1) / scale4
+            parts += [zone.flatten(1), s[name + "_mask"].to(p.dtype)]
+        # OUs inside the perception radius, nearest first: relative position, velocity, flag
+        rel = s["ou_pos"] - p.unsqueeze(-2)
+        dist = torch.linalg.vector_norm(rel, dim=-1)
+        visible = s["ou_mask"] & (dist <= cfg.safety.perception_radius)
+        order = torch.argsort(dist.masked_fill(~visible, float("inf")), dim=-1)
+        vis = torch.gather(visible, -1, order).to(p.dtype)
+        idx2 = order.unsqueeze(-1).expand(-1, -1, 2)
+        rel = torch.gather(rel, -2, idx2) / cfg.safety.perception_radius * vis.unsqueeze(-1)
+        vel = torch.gather(s["ou_vel"], -2, idx2) / m.v_max * vis.unsqueeze(-1)
+        parts += [rel.flatten(1), vel.flatten(1), vis]
+        # DCU: position, velocity, energy left, data of the last slot, TA, LA
+        parts += [
+            p / scale2,
+            s["velocity"] / m.v_max,
+            (s["energy_left"] / cfg.energy.e_limit).unsqueeze(-1),
+            (s["slot_data"] / cfg.ge.data_max).unsqueeze(-1),
+            s["takeoff"] / scale4,
+            s["landing"] / scale4,
+        ]
+        if self.extra:
+            ds = cfg.obs_distance_scale
+            near = torch.stack([s["d_bz"], s["d_nfz"], s["d_rz"], s["d_boundary"]], dim=-1)
+            parts += [
+                near.clamp(max=ds) / ds,
+                (s["d_la"] / a.diagonal).unsqueeze(-1),
+                (s["d_rz"] <= 0).to(p.dtype).unsqueeze(-1),
+            ]
+        obs = torch.cat([t.reshape(b, -1) for t in parts], dim=-1)
+        return obs
