@@ -161,3 +161,40 @@ def advisor_states_from_tensordict(
             )
         )
     return out
+
+
+def example_states(n: int, limits: WorldLimits, seed: int = 0) -> list[AdvisorState]:
+    """``n`` distinct, plausible states (benchmarks, tests, demos); not the env's distribution."""
+    import random
+
+    rng = random.Random(seed)
+    X, Y, pr = limits.x_size, limits.y_size, limits.perception_radius
+
+    def rect() -> Rect:
+        w, h = rng.uniform(0.1, 0.4) * X, rng.uniform(0.1, 0.4) * Y
+        x0, y0 = rng.uniform(0, X - w), rng.uniform(0, Y - h)
+        return (round(x0, 1), round(y0, 1), round(x0 + w, 1), round(y0 + h, 1))
+
+    out = []
+    for _ in range(n):
+        x, y = rng.uniform(0, X), rng.uniform(0, Y)
+        ous = []
+        for _ in range(rng.randint(0, 2)):
+            a, d = rng.uniform(0, 6.283), rng.uniform(2, pr)
+            ous.append(OtherUAV(x + d * math.cos(a), y + d * math.sin(a), rng.uniform(-3, 3),
+                                rng.uniform(-3, 3), d))
+        ous.sort(key=lambda o: o.distance)
+        out.append(AdvisorState(
+            position=(x, y), velocity=(rng.uniform(-3, 3), rng.uniform(-3, 3)),
+            energy_left=rng.uniform(0.2, 1.0) * limits.e_limit, limits=limits,
+            ges=tuple(GroundEquipment(rng.uniform(0, X), rng.uniform(0, Y), rng.uniform(0.1, 3))
+                      for _ in range(rng.randint(3, 12))),
+            nfz=tuple(rect() for _ in range(rng.randint(1, 3))),
+            rz=tuple(rect() for _ in range(rng.randint(1, 3))),
+            bz=tuple(rect() for _ in range(rng.randint(1, 3))),
+            ous=tuple(ous), d_bz=rng.uniform(0, 60), d_nfz=rng.uniform(0, 60), d_rz=rng.uniform(0, 60),
+            d_ou=ous[0].distance if ous else math.inf, d_boundary=min(x, y, X - x, Y - y),
+            d_la=math.hypot(x - (limits.landing[0] + limits.landing[2]) / 2,
+                            y - (limits.landing[1] + limits.landing[3]) / 2),
+        ))
+    return out
