@@ -1,0 +1,87 @@
+"""Small pieces every learner shares: strict config base, config parsing, optimiser steps."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any, TypeVar
+
+import torch
+from pydantic import BaseModel, ConfigDict, ValidationError
+from tensordict import TensorDictBase
+
+C = TypeVar("C", bound=BaseModel)
+
+
+class StrictConfig(BaseModel):
+    """Unknown keys, NaN/inf and wrong types are errors (STYLE.md rule 6)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+
+
+def parse_config(model: type[C], cfg: Any = None, **overrides: Any) -> C:
+    """Validate ``cfg`` (None, a mapping, an OmegaConf node or ``model``) into ``model``.
+
+    Raises ``ValueError`` naming every offending field with the value it got.
+    """
+    if isinstance(cfg, model) and not overrides:
+        return cfg
+    if cfg is None:
+        data: dict[str, Any] = {}
+    elif isinstance(cfg, BaseModel):
+        data = cfg.model_dump()
+    else:
+        try:
+            from omegaconf import DictConfig, OmegaConf
+
+            if isinstance(cfg, DictConfig):
+                cfg = OmegaConf.to_container(cfg, resolve=True)
+        except ImportError:  # pragma: no cover
+            pass
+        data = dict(cfg)
+    data.update(overrides)
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        name = data.get("name", model.__name__)
+        lines = [
+            f"algo.{'.'.join(str(p) for p in err['loc']) or name}: {err['msg']} (got {err.get('input')!r})"
+            for err in e.errors()
+        ]
+        raise ValueError(f"invalid {name} config:\n  " + "\n  ".join(lines)) from None
+
+
+def optimiser_step(
+    optimisers: Mapping[str, torch.optim.Optimizer],
+    loss: torch.Tensor,
+    max_grad_norm: float | None,
+) -> dict[str, torch.Tensor]:
+    """One backward of ``loss`` and a step of every optimiser.
+
+    The learners sum losses whose gradients touch disjoint parameter sets (torchrl detaches
+    the critic in the actor loss and the actor in the critic target), so one backward equals
+    separate ones. Gradients are clipped per optimiser; the pre-clip norms are returned.
+    """
+    for opt in optimisers.values():
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    norms = {}
+    for name, opt in optimisers.items():
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
+        if max_grad_norm is not None and params:
+            norms[f"grad_norm_{name}"] = torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
+        opt.step()
+    return norms
+
+
+def to_floats(values: Mapping[str, Any] | TensorDictBase, keys: Iterable[str] | None = None) -> dict[str, float]:
+    """Scalar tensors -> plain floats for the logger (one ``.item()`` each)."""
+    items = values.items() if keys is None else ((k, values[k]) for k in keys)
+    out = {}
+    for k, v in items:
+        if isinstance(v, torch.Tensor):
+            if v.numel() != 1:
+                v = v.float().mean()
+            out[str(k)] = float(v.detach().item())
+        elif isinstance(v, (int, float)):
+            out[str(k)] = float(v)
+    return out

@@ -1,0 +1,203 @@
+"""Actor and critic factories shared by the learners (SPEC.md §8: 2 hidden layers of 64).
+
+Every factory takes plain sizes and an action spec, so the env, the tests and the learners
+build the same modules. Keys follow docs/env_contract.md and torchrl.objectives' defaults:
+
+- stochastic actors (SAC, PPO): ``"observation"`` -> ``"loc"``, ``"scale"`` -> ``"action"``
+  (tanh-normal, bounded by the spec), plus ``"action_log_prob"`` when ``return_log_prob``;
+- DDPG actor: ``"observation"`` -> ``"param"`` (unbounded) -> ``"action"`` (tanh into bounds);
+- Q critic: ``("observation", "action")`` -> ``"state_action_value"``;
+- value critic: ``"observation"`` -> ``out_key`` (``"state_value"``, or ``"cost_value"`` for the
+  cost critic of the Lagrangian learner).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded, TensorSpec
+from torchrl.modules import (
+    MLP,
+    AdditiveGaussianModule,
+    NormalParamExtractor,
+    OrnsteinUhlenbeckProcessModule,
+    ProbabilisticActor,
+    TanhModule,
+    TanhNormal,
+    ValueOperator,
+)
+
+Activation = Literal["relu", "tanh", "elu", "silu"]
+_ACTIVATIONS: dict[str, type[nn.Module]] = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "silu": nn.SiLU}
+
+__all__ = [
+    "Activation",
+    "action_bounds",
+    "make_ddpg_actor",
+    "make_ddpg_exploration",
+    "make_ppo_actor",
+    "make_q_critic",
+    "make_sac_actor",
+    "make_value_critic",
+]
+
+
+def _activation(name: str) -> type[nn.Module]:
+    try:
+        return _ACTIVATIONS[name]
+    except KeyError:
+        raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {name!r}") from None
+
+
+def _mlp(in_features: int, out_features: int, hidden: Sequence[int], activation: str) -> MLP:
+    return MLP(
+        in_features=in_features,
+        out_features=out_features,
+        num_cells=list(hidden),
+        activation_class=_activation(activation),
+    )
+
+
+def action_bounds(action_spec: TensorSpec) -> Bounded:
+    """The per-sample action box ``[act_dim]`` of a (possibly batch-shaped) bounded spec.
+
+    The env declares its action spec with the batch dimension (``[B, 2]``); the networks need
+    the box of one sample, which must be the same for every batch row.
+    """
+    if not isinstance(action_spec, Bounded):
+        raise TypeError(f"the action spec must be Bounded, got {type(action_spec).__name__}")
+    act_dim = action_spec.shape[-1]
+    low = action_spec.space.low.expand(action_spec.shape).reshape(-1, act_dim)
+    high = action_spec.space.high.expand(action_spec.shape).reshape(-1, act_dim)
+    if not (torch.equal(low, low[:1].expand_as(low)) and torch.equal(high, high[:1].expand_as(high))):
+        raise ValueError("the action bounds differ between batch rows; one box per sample is expected")
+    return Bounded(low[0].clone(), high[0].clone(), shape=(act_dim,), dtype=action_spec.dtype, device=action_spec.device)
+
+
+def _tanh_normal_actor(
+    obs_dim: int, action_spec: TensorSpec, hidden: Sequence[int], activation: str, return_log_prob: bool
+) -> ProbabilisticActor:
+    box = action_bounds(action_spec)
+    act_dim = box.shape[-1]
+    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation), NormalParamExtractor())
+    params = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        params,
+        in_keys=["loc", "scale"],
+        spec=box,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": box.space.low, "high": box.space.high},
+        return_log_prob=return_log_prob,
+    )
+
+
+def make_sac_actor(
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int] = (64, 64),
+    activation: Activation = "relu",
+) -> ProbabilisticActor:
+    """Tanh-Gaussian actor for SAC: ``"observation"`` -> ``"loc"``, ``"scale"``, ``"action"``.
+
+    SACLoss draws its own reparameterised samples from ``get_dist``; no log-prob is written.
+    Under ``ExplorationType.DETERMINISTIC`` the action is the tanh of the mean (evaluation).
+    """
+    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=False)
+
+
+def make_ppo_actor(
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int] = (64, 64),
+    activation: Activation = "tanh",
+) -> ProbabilisticActor:
+    """Tanh-Gaussian actor for PPO/CPO; also writes ``"action_log_prob"`` for the ratio."""
+    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=True)
+
+
+def make_q_critic(
+    obs_dim: int,
+    act_dim: int,
+    hidden: Sequence[int] = (64, 64),
+    activation: Activation = "relu",
+) -> ValueOperator:
+    """Q(s, a): ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``."""
+    return ValueOperator(
+        _mlp(obs_dim + act_dim, 1, hidden, activation),
+        in_keys=["observation", "action"],
+        out_keys=["state_action_value"],
+    )
+
+
+def make_value_critic(
+    obs_dim: int,
+    hidden: Sequence[int] = (64, 64),
+    out_key: str = "state_value",
+    activation: Activation = "tanh",
+) -> ValueOperator:
+    """V(s): ``"observation"`` -> ``out_key`` ``[..., 1]``."""
+    return ValueOperator(_mlp(obs_dim, 1, hidden, activation), in_keys=["observation"], out_keys=[out_key])
+
+
+def make_ddpg_actor(
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int] = (64, 64),
+    activation: Activation = "relu",
+) -> TensorDictSequential:
+    """Deterministic actor: ``"observation"`` -> ``"param"`` -> ``"action"`` = tanh into the box."""
+    box = action_bounds(action_spec)
+    act_dim = box.shape[-1]
+    param = TensorDictModule(_mlp(obs_dim, act_dim, hidden, activation), in_keys=["observation"], out_keys=["param"])
+    squash = TanhModule(in_keys=["param"], out_keys=["action"], spec=box)
+    return TensorDictSequential(param, squash)
+
+
+def make_ddpg_exploration(
+    actor: TensorDictModule,
+    action_spec: TensorSpec,
+    *,
+    kind: Literal["gaussian", "ou"] = "gaussian",
+    sigma_init: float = 0.3,
+    sigma_end: float = 0.05,
+    annealing_num_steps: int = 100_000,
+    ou_theta: float = 0.15,
+    ou_dt: float = 1.0,
+) -> tuple[TensorDictSequential, nn.Module]:
+    """The DDPG behaviour policy: ``actor`` followed by annealed noise, projected into the box.
+
+    Returns ``(policy, noise)``; the training loop calls ``noise.step(frames)`` after each
+    collected batch to anneal sigma from ``sigma_init`` to ``sigma_end`` over
+    ``annealing_num_steps`` frames. Noise is only added under ``ExplorationType.RANDOM`` (the
+    collector's default); evaluation under ``DETERMINISTIC`` gets the bare actor.
+
+    ``kind="ou"`` is the Ornstein-Uhlenbeck process of the DDPG paper; it keeps its state per
+    batch row and needs an ``"is_init"`` entry (torchrl's ``InitTracker`` transform) to reset it.
+    """
+    box = action_bounds(action_spec)
+    if kind == "gaussian":
+        noise: nn.Module = AdditiveGaussianModule(
+            spec=box,
+            sigma_init=float(sigma_init),
+            sigma_end=float(sigma_end),
+            annealing_num_steps=annealing_num_steps,
+            safe=False,  # _add_noise already projects into the box
+        )
+    elif kind == "ou":
+        noise = OrnsteinUhlenbeckProcessModule(
+            spec=box,
+            eps_init=1.0,
+            eps_end=float(sigma_end / sigma_init) if sigma_init > 0 else 0.0,
+            annealing_num_steps=annealing_num_steps,
+            theta=ou_theta,
+            sigma=sigma_init,
+            dt=ou_dt,
+            safe=True,
+        )
+    else:
+        raise ValueError(f"exploration kind must be 'gaussian' or 'ou', got {kind!r}")
+    return TensorDictSequential(actor, noise), noise
