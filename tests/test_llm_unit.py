@@ -44,7 +44,7 @@ def test_prompt_has_three_parts_and_the_observation():
     assert '{"vx": 4.2, "vy": 1.6, "Confidence": 0.86, "Reasoning":' in s
     u = user["content"]
     for frag in ("(100.0, 200.0)", "(3.0, -1.0)", "700000 J of 800000 J", "inside an RZ",
-                 "(120.0,300.0,2.10)", "(50,50,150,120)", "(200,200,300,330)", "(110.0,205.0,2.0,0)",
+                 "(120,300,2.10)", "(50,50,150,120)", "(200,200,300,330)", "(110.0,205.0,2.0,0)",
                  "OU 11.2", "(475,0,500,25)"):
         assert frag in u, frag
 

@@ -112,6 +112,7 @@ class LLMAdvisor:
         self._thread: threading.Thread | None = None
         self._server_cm: contextlib.AbstractContextManager | None = None
         self._server_url: str | None = None
+        self.local_server = None  # LocalServer (base_url, pid) when this advisor started one
         self._lock = threading.Lock()
 
     def __getstate__(self) -> dict:
@@ -149,7 +150,7 @@ class LLMAdvisor:
                 self._loop.close()
             self._loop = self._thread = None
         if self._server_cm is not None:
-            cm, self._server_cm, self._server_url = self._server_cm, None, None
+            cm, self._server_cm, self._server_url, self.local_server = self._server_cm, None, None, None
             cm.__exit__(None, None, None)
         if self._cache is not None:
             self._cache.close()
@@ -168,7 +169,7 @@ class LLMAdvisor:
 
                 cm = local_server(self.cfg.server)
                 srv = cm.__enter__()
-                self._server_cm, self._server_url = cm, srv.base_url
+                self._server_cm, self._server_url, self.local_server = cm, srv.base_url, srv
                 log.info("started local LLM server pid %d at %s", srv.pid, srv.base_url)
         return self._server_url  # type: ignore[return-value]
 

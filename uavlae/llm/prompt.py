@@ -74,7 +74,7 @@ def system_prompt(lim: WorldLimits, ablation: str = "none") -> str:
 
 def observation_prompt(s: AdvisorState) -> str:
     lim = s.limits
-    ges = " ".join(f"({_num(g.x)},{_num(g.y)},{_num(g.remaining, 2)})" for g in s.ges) or "none"
+    ges = " ".join(f"({_num(g.x, 0)},{_num(g.y, 0)},{_num(g.remaining, 2)})" for g in s.ges) or "none"  # whole metres: fewer tokens
     ous = " ".join(f"({_num(o.x)},{_num(o.y)},{_num(o.vx)},{_num(o.vy)})" for o in s.ous) or "none"
     return Template(template("observation.txt")).substitute(
         _limit_vars(lim),
