@@ -1,0 +1,330 @@
+"""Learners (uavlae.algos) and their networks: Lagrange maths by hand, one update on real env
+data for every learner, checkpoint round trips, and a small SAC learning check."""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from uavlae.algos.ddpg import DDPGConfig, make_ddpg, make_ddpg_config
+from uavlae.algos.ppo import PPOConfig, make_ppo, make_ppo_config
+from uavlae.algos.ppo_lagrangian import (
+    CPOConfig,
+    LagrangeMultiplier,
+    make_cpo_config,
+    make_ppo_lagrangian,
+)
+from uavlae.algos.sac import SACConfig, make_sac, make_sac_config
+from uavlae.envs import UAVEnv
+from uavlae.policies.networks import action_bounds, make_sac_actor
+
+CONF = Path(__file__).resolve().parents[1] / "conf" / "algo"
+
+
+# ---------------------------------------------------------------- Lagrange multiplier
+def test_dual_ascent_hand_computed():
+    lam = LagrangeMultiplier({"method": "dual_ascent", "lr": 0.1, "init": 0.0}, limit=0.05)
+    # lambda <- max(0, lambda + 0.1 * (0.5 - 0.05))
+    assert lam.update(0.5) == pytest.approx(0.045, abs=1e-12)
+    assert lam.update(0.5) == pytest.approx(0.09, abs=1e-12)
+    # below the limit: -0.1 * 0.05 = -0.005 a step, so 0.09 reaches 0 after 18 steps
+    values = [lam.update(0.0) for _ in range(25)]
+    assert values[0] == pytest.approx(0.085, abs=1e-12)
+    assert all(b <= a for a, b in zip(values, values[1:]))
+    assert min(values) >= 0.0
+    assert values[-1] == 0.0 and lam.value == 0.0  # exactly zero, clipped, never negative
+    assert lam.update(0.5) == pytest.approx(0.045, abs=1e-12)  # rises again from zero
+
+
+def test_dual_ascent_limit_argument_and_cap():
+    lam = LagrangeMultiplier({"lr": 1.0, "max_value": 0.3}, limit=0.05)
+    assert lam.update(0.15, limit=0.1) == pytest.approx(0.05)  # the call's limit wins
+    assert lam.update(10.0) == 0.3  # projected onto [0, max_value]
+    with pytest.raises(ValueError, match="finite"):
+        lam.update(float("nan"))
+
+
+def test_pid_lagrangian_hand_computed_and_monotone():
+    cfg = {"method": "pid", "kp": 0.05, "ki": 0.01, "kd": 0.01, "init": 0.0}
+    lam = LagrangeMultiplier(cfg, limit=0.05)
+    # e = 0.45, I = 0.45, D = 0 (first step): 0.05 * 0.45 + 0.01 * 0.45
+    assert lam.update(0.5) == pytest.approx(0.027)
+    # rising cost: e = 0.55, I = 1.0, D = 0.1
+    assert lam.update(0.6) == pytest.approx(0.05 * 0.55 + 0.01 * 1.0 + 0.01 * 0.1)
+    up = [lam.update(0.6) for _ in range(20)]
+    assert all(b > a for a, b in zip(up, up[1:]))  # integral keeps growing above the limit
+    down = [lam.update(0.0) for _ in range(400)]
+    assert all(b <= a for a, b in zip(down, down[1:]))
+    assert min(down) >= 0.0 and down[-1] == 0.0
+
+
+def test_lagrange_state_round_trip():
+    a = LagrangeMultiplier({"method": "pid"}, limit=0.05)
+    for c in (0.3, 0.2, 0.4):
+        a.update(c)
+    b = LagrangeMultiplier({"method": "pid"}, limit=0.05)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    assert b.state_dict() == a.state_dict()
+    assert b.update(0.1) == a.update(0.1)
+
+
+# ---------------------------------------------------------------- configs
+@pytest.mark.parametrize(
+    "name, make, model",
+    [
+        ("sac", make_sac_config, SACConfig),
+        ("ddpg", make_ddpg_config, DDPGConfig),
+        ("ppo", make_ppo_config, PPOConfig),
+        ("cpo", make_cpo_config, CPOConfig),
+    ],
+)
+def test_yaml_mirrors_config(name, make, model):
+    data = yaml.safe_load((CONF / f"{name}.yaml").read_text())
+    assert set(data) == set(model.model_fields)
+    assert make(data) == model()
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="algo.actor_lr"):
+        make_sac_config({"actor_lr": -1.0})
+    with pytest.raises(ValueError, match="algo.learning_rate"):
+        make_ppo_config({"learning_rate": 1e-3})
+    with pytest.raises(ValueError, match="sigma_end"):
+        make_ddpg_config({"noise": {"sigma_init": 0.1, "sigma_end": 0.2}})
+    assert make_sac_config().actor_lr == 1e-4 and make_sac_config().critic_lr == 3e-4
+    assert make_ppo_config().clip_epsilon == 0.2 and make_cpo_config().cost_limit == 0.05
+
+
+# ---------------------------------------------------------------- env data
+@pytest.fixture(scope="module")
+def env() -> UAVEnv:
+    return UAVEnv(batch_size=[8], seed=0)
+
+
+@pytest.fixture(scope="module")
+def obs_dim(env) -> int:
+    return env.observation_spec["observation"].shape[-1]
+
+
+@pytest.fixture(scope="module")
+def replay_batch(env) -> TensorDictBase:
+    """Random-action transitions as a replay buffer would return them: ``[128]``."""
+    torch.manual_seed(0)
+    return env.rollout(16, break_when_any_done=False).reshape(-1)
+
+
+def on_policy_batch(env, actor) -> TensorDictBase:
+    torch.manual_seed(1)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        return env.rollout(16, actor, break_when_any_done=False)
+
+
+def params(module: torch.nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in module.parameters()]
+
+
+def changed(before: list[torch.Tensor], module: torch.nn.Module) -> bool:
+    return any(not torch.equal(b, p) for b, p in zip(before, module.parameters()))
+
+
+def td_equal(a: TensorDictBase, b: TensorDictBase) -> bool:
+    return all(torch.equal(a[k], b[k]) for k in a.keys(True, True))
+
+
+def td_max_abs_diff(a: TensorDictBase, b: TensorDictBase) -> float:
+    return max(float((a[k] - b[k]).abs().max()) for k in a.keys(True, True))
+
+
+def all_finite(logs: dict[str, float]) -> bool:
+    return all(math.isfinite(v) for v in logs.values())
+
+
+def test_networks_respect_action_box(env, obs_dim):
+    box = action_bounds(env.action_spec)
+    assert box.shape == (2,)
+    actor = make_sac_actor(obs_dim, env.action_spec)
+    td = actor(env.reset())
+    assert td["action"].shape == (8, 2) and {"loc", "scale"} <= set(td.keys())
+    assert td["action"].abs().max() <= 1.0
+    with pytest.raises(TypeError):
+        action_bounds(env.observation_spec["observation"])
+
+
+def test_sac_update(env, obs_dim, replay_batch):
+    sac = make_sac({}, obs_dim, env.action_spec)
+    loss = sac.loss
+    actor_before = params(sac.actor)
+    q_before = loss.qvalue_network_params.data.clone()
+    target_before = loss.target_qvalue_network_params.data.clone()
+    alpha_before = sac.alpha
+    logs = sac.update(replay_batch.clone())
+    assert all_finite(logs) and {"loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"} <= set(logs)
+    assert changed(actor_before, sac.actor)  # the acting actor shares the loss parameters
+    assert not td_equal(loss.qvalue_network_params.data, q_before)
+    # SoftUpdate: target <- (1 - tau) * target + tau * source, once per update
+    tau = sac.cfg.tau
+    expected = target_before.apply(lambda t, s: (1 - tau) * t + tau * s, loss.qvalue_network_params.data)
+    assert td_max_abs_diff(loss.target_qvalue_network_params.data, expected) < 1e-6
+    assert not td_equal(loss.target_qvalue_network_params.data, target_before)
+    sac.update(replay_batch.clone())
+    assert sac.alpha != alpha_before  # automatic entropy tuning moves alpha
+
+
+def test_ddpg_update_and_exploration(env, obs_dim, replay_batch):
+    ddpg = make_ddpg({}, obs_dim, env.action_spec)
+    actor_before, critic_before = params(ddpg.actor), ddpg.loss.value_network_params.data.clone()
+    target_before = ddpg.loss.target_value_network_params.data.clone()
+    logs = ddpg.update(replay_batch.clone())
+    assert all_finite(logs) and {"loss_actor", "loss_value"} <= set(logs)
+    assert changed(actor_before, ddpg.actor)
+    assert not td_equal(ddpg.loss.value_network_params.data, critic_before)
+    assert not td_equal(ddpg.loss.target_value_network_params.data, target_before)
+    # noise only while exploring; annealing lowers sigma towards sigma_end
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a_det = ddpg.exploration_policy(td.clone())["action"]
+        assert torch.equal(a_det, ddpg.actor(td.clone())["action"])
+    with set_exploration_type(ExplorationType.RANDOM):
+        a_rnd = ddpg.exploration_policy(td.clone())["action"]
+    assert not torch.equal(a_det, a_rnd) and a_rnd.abs().max() <= 1.0
+    sigma0 = float(ddpg.noise.sigma)
+    ddpg.noise.step(1000)
+    assert float(ddpg.noise.sigma) < sigma0
+
+
+def test_ppo_update(env, obs_dim):
+    ppo = make_ppo({"epochs": 2, "minibatch_size": 32}, obs_dim, env.action_spec)
+    batch = on_policy_batch(env, ppo.actor)
+    assert batch.shape == (8, 16) and "action_log_prob" in batch.keys()
+    actor_before, critic_before = params(ppo.actor), params(ppo.critic)
+    logs = ppo.update(batch)
+    assert all_finite(logs) and {"loss_objective", "loss_critic", "clip_fraction"} <= set(logs)
+    assert changed(actor_before, ppo.actor) and changed(critic_before, ppo.critic)
+    with pytest.raises(KeyError, match="action_log_prob"):
+        ppo.update(batch.exclude("action_log_prob"))
+
+
+def test_ppo_lagrangian_update(env, obs_dim):
+    algo = make_ppo_lagrangian({"epochs": 2, "minibatch_size": 32, "lagrange": {"lr": 0.1}}, obs_dim, env.action_spec)
+    batch = on_policy_batch(env, algo.actor)
+    before = [params(m) for m in (algo.actor, algo.critic, algo.cost_critic)]
+    logs = algo.update(batch)
+    assert all_finite(logs)
+    assert {"lambda", "cost_estimate", "cost_limit", "cost_mean_step", "cost_rate", "loss_cost_critic"} <= set(logs)
+    assert all(changed(b, m) for b, m in zip(before, (algo.actor, algo.critic, algo.cost_critic)))
+    # the multiplier took one dual-ascent step on the measured violation
+    assert logs["lambda"] == pytest.approx(max(0.0, 0.1 * (logs["cost_estimate"] - 0.05)))
+    logs = algo.update(batch, episode_cost=0.55)
+    assert logs["cost_estimate"] == 0.55 and logs["episode_cost_given"] == 1.0
+    with pytest.raises(KeyError, match="cost"):
+        algo.update(batch.exclude(("next", "cost")))
+
+
+def test_lagrangian_advantage_form(env, obs_dim):
+    """A_L = (std(A_r) - lambda * centred(A_c)) / (1 + lambda), lambda after this update's step."""
+    algo = make_ppo_lagrangian({"epochs": 1, "lagrange": {"init": 2.0, "lr": 1e-9}}, obs_dim, env.action_spec)
+    batch = on_policy_batch(env, algo.actor)
+    seen = {}
+    step = algo._step
+
+    def spy(mb):
+        seen.setdefault("mb", mb)
+        return step(mb)
+
+    algo._step = spy
+    with torch.no_grad():
+        ref = algo.cost_gae(algo.gae(batch.copy())).reshape(-1)
+    algo.update(batch)
+    lam = algo.lagrange.value
+    ar, ac = ref["advantage"], ref["cost_advantage"]
+    expected = ((ar - ar.mean()) / ar.std() - lam * (ac - ac.mean())) / (1 + lam)
+    mb = seen["mb"]
+    # minibatch rows are a permutation of the batch: match them by observation
+    idx = [int((ref["observation"] == o).all(-1).nonzero()[0]) for o in mb["observation"][:16]]
+    assert torch.allclose(mb["lagrangian_advantage"][:16], expected[idx], atol=1e-5)
+
+
+# ---------------------------------------------------------------- checkpoints
+def _assert_same(a, b, path="state"):
+    if isinstance(a, dict):
+        assert set(a) == set(b), path
+        for k in a:
+            _assert_same(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{path}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), path
+    else:
+        assert a == b, path
+
+
+def _learners(obs_dim, spec):
+    return {
+        "sac": lambda: make_sac({}, obs_dim, spec),
+        "ddpg": lambda: make_ddpg({}, obs_dim, spec),
+        "ppo": lambda: make_ppo({"epochs": 1, "minibatch_size": 64}, obs_dim, spec),
+        "cpo": lambda: make_ppo_lagrangian({"epochs": 1, "minibatch_size": 64, "lagrange": {"method": "pid"}}, obs_dim, spec),
+    }
+
+
+@pytest.mark.parametrize("name", ["sac", "ddpg", "ppo", "cpo"])
+def test_state_dict_round_trip(name, env, obs_dim, replay_batch):
+    make = _learners(obs_dim, env.action_spec)[name]
+    torch.manual_seed(0)
+    a = make()
+    batch = on_policy_batch(env, a.actor) if name in ("ppo", "cpo") else replay_batch
+    if name == "ddpg":
+        a.noise.step(500)
+    a.update(batch.clone())
+    state = copy.deepcopy(a.state_dict())
+    torch.manual_seed(123)  # different initial weights
+    b = make()
+    b.load_state_dict(state)
+    _assert_same(a.state_dict(), b.state_dict())
+    for pa, pb in zip(a.actor.parameters(), b.actor.parameters()):  # the acting policy too
+        assert torch.equal(pa, pb)
+    # identical continuation: optimiser moments, targets, alpha and lambda all restored
+    torch.manual_seed(7)
+    la = a.update(batch.clone())
+    torch.manual_seed(7)
+    lb = b.update(batch.clone())
+    assert la == lb
+    _assert_same(a.state_dict(), b.state_dict())
+
+
+# ---------------------------------------------------------------- learning sanity
+def test_sac_learns_a_one_step_bandit():
+    """Reward -|a - 0.6 * s[:2]|^2 on a 1-step task: SAC beats a uniform-random policy."""
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    cfg = {"actor_lr": 3e-3, "critic_lr": 3e-3, "alpha_lr": 3e-3, "alpha_init": 0.1}
+    sac = make_sac(cfg, 3, spec)
+
+    def reward(obs, act):
+        return -(act - 0.6 * obs[:, :2]).pow(2).sum(-1, keepdim=True)
+
+    def batch(n=128):
+        obs, act = torch.rand(n, 3) * 2 - 1, torch.rand(n, 2) * 2 - 1
+        one = torch.ones(n, 1, dtype=torch.bool)
+        nxt = {"observation": torch.rand(n, 3) * 2 - 1, "reward": reward(obs, act), "done": one, "terminated": one}
+        return TensorDict({"observation": obs, "action": act, "next": nxt}, [n])
+
+    test_obs = torch.rand(1024, 3) * 2 - 1
+    random_return = reward(test_obs, torch.rand(1024, 2) * 2 - 1).mean().item()
+    for _ in range(300):  # ~200 already reach about -0.003
+        sac.update(batch())
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        act = sac.actor(TensorDict({"observation": test_obs}, [1024]))["action"]
+    learned = reward(test_obs, act).mean().item()
+    assert random_return < -0.7  # E|U - 0.6 s|^2 = 2 * (1/3 + 0.12)
+    assert learned > -0.1, (learned, random_return)
