@@ -42,8 +42,8 @@ class LLMConfig(_Strict):
     top_p: float = Field(1.0, gt=0, le=1)
     seed: int | None = 0  # sent when not None; part of the cache key
     max_tokens: int = Field(160, ge=16)
-    timeout_s: float = Field(60.0, gt=0)  # per HTTP request
-    max_concurrency: int = Field(8, ge=1)  # requests in flight at once
+    timeout_s: float = Field(120.0, gt=0)  # per HTTP request
+    max_concurrency: int = Field(1, ge=1)  # requests in flight at once (local: = server.n_parallel)
     max_attempts: int = Field(10, ge=1)  # paper: ask again at most 10 times on a bad answer
     max_retries: int = Field(3, ge=0)  # transport retries (connect error, timeout, 429, 5xx) per attempt
     backoff_base_s: float = Field(0.5, ge=0)
