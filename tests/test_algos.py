@@ -92,6 +92,19 @@ def test_yaml_mirrors_config(name, make, model):
     assert make(data) == model()
 
 
+@pytest.mark.parametrize("name", ["sac", "ddpg", "ppo", "cpo"])
+def test_make_learner_dispatches_on_name(name):
+    from omegaconf import OmegaConf
+
+    from uavlae.algos import MAKERS, make_learner
+
+    node = OmegaConf.create(yaml.safe_load((CONF / f"{name}.yaml").read_text()))
+    learner = make_learner(node, 5, Bounded(-1.0, 1.0, shape=(4, 2)))
+    assert learner.cfg.name == name and type(learner).__module__ == MAKERS[name].__module__
+    with pytest.raises(ValueError, match="algo.name"):
+        make_learner({"name": "trpo"}, 5, Bounded(-1.0, 1.0, shape=(2,)))
+
+
 def test_config_errors_name_the_field():
     with pytest.raises(ValueError, match="algo.actor_lr"):
         make_sac_config({"actor_lr": -1.0})

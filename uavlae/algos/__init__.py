@@ -1,0 +1,47 @@
+"""Learners on torchrl.objectives, one module each; ``make_learner`` dispatches on ``cfg.name``.
+
+Every learner has ``actor`` (the acting policy), ``update(batch) -> dict[str, float]``,
+``state_dict()`` / ``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample
+``[N]``; on-policy (ppo, cpo): a collector batch ``[*B, T]``, time last.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torchrl.data import TensorSpec
+
+from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
+from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
+from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
+from uavlae.algos.sac import SAC, SACConfig, make_sac
+
+MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian}
+OFF_POLICY = frozenset({"sac", "ddpg"})
+
+Learner = SAC | DDPG | PPO | PPOLagrangian
+
+
+def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec) -> Learner:
+    """Build the learner named by ``cfg["name"]`` (a conf/algo/*.yaml node or a mapping)."""
+    name = cfg.name if hasattr(cfg, "name") else cfg["name"]
+    if name not in MAKERS:
+        raise ValueError(f"algo.name must be one of {sorted(MAKERS)}, got {name!r}")
+    return MAKERS[name](cfg, obs_dim, action_spec)
+
+
+__all__ = [
+    "CPOConfig",
+    "DDPG",
+    "DDPGConfig",
+    "LagrangeMultiplier",
+    "Learner",
+    "MAKERS",
+    "OFF_POLICY",
+    "PPO",
+    "PPOConfig",
+    "PPOLagrangian",
+    "SAC",
+    "SACConfig",
+    "make_learner",
+]
