@@ -22,7 +22,7 @@ from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss, SoftUpdate
 
-from uavlae.algos.common import StrictConfig, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
 from uavlae.policies.networks import Activation, action_bounds, make_ddpg_actor, make_ddpg_exploration, make_q_critic
 
 
@@ -128,8 +128,8 @@ def make_ddpg(cfg: DDPGConfig | Any, obs_dim: int, action_spec: TensorSpec) -> D
     loss = DDPGLoss(actor, critic, loss_function=cfg.loss_function, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
     optimisers = {
-        "actor": torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
-        "critic": torch.optim.Adam(loss.value_network_params.values(True, True), lr=cfg.critic_lr),
+        "actor": adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
+        "critic": adam(loss.value_network_params.values(True, True), lr=cfg.critic_lr),
     }
     target_updater = SoftUpdate(loss, tau=cfg.tau)
     return DDPG(

@@ -24,7 +24,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
 from uavlae.policies.networks import Activation, make_ppo_actor, make_value_critic
 
 # What a PPO minibatch needs once GAE has run; the rest of the rollout is dropped before shuffling.
@@ -159,7 +159,7 @@ def make_ppo(cfg: PPOConfig | Any, obs_dim: int, action_spec: TensorSpec) -> PPO
     loss = make_clip_ppo_loss(actor, critic, cfg, normalize_advantage=cfg.normalize_advantage)
     gae = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
     optimisers = {
-        "actor": torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
-        "critic": torch.optim.Adam(loss.critic_network_params.values(True, True), lr=cfg.critic_lr),
+        "actor": adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
+        "critic": adam(loss.critic_network_params.values(True, True), lr=cfg.critic_lr),
     }
     return PPO(cfg=cfg, actor=actor, critic=critic, loss=loss, gae=gae, optimisers=optimisers)

@@ -43,7 +43,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
 from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
 from uavlae.policies.networks import Activation, make_ppo_actor, make_value_critic
 
@@ -248,8 +248,8 @@ def make_ppo_lagrangian(cfg: CPOConfig | Any, obs_dim: int, action_spec: TensorS
         reward="cost", value="cost_value", advantage="cost_advantage", value_target="cost_value_target"
     )
     optimisers = {
-        "actor": torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
-        "critic": torch.optim.Adam(
+        "actor": adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
+        "critic": adam(
             [*loss.critic_network_params.values(True, True), *cost_critic.parameters()], lr=cfg.critic_lr
         ),
     }

@@ -20,7 +20,7 @@ from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from uavlae.algos.common import StrictConfig, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
 from uavlae.policies.networks import Activation, action_bounds, make_q_critic, make_sac_actor
 
 
@@ -130,9 +130,9 @@ def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC
     )
     loss.make_value_estimator(gamma=cfg.gamma)
     optimisers = {
-        "actor": torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
-        "critic": torch.optim.Adam(loss.qvalue_network_params.values(True, True), lr=cfg.critic_lr),
-        "alpha": torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_lr),
+        "actor": adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
+        "critic": adam(loss.qvalue_network_params.values(True, True), lr=cfg.critic_lr),
+        "alpha": adam([loss.log_alpha], lr=cfg.alpha_lr),
     }
     target_updater = SoftUpdate(loss, tau=cfg.tau)
     return SAC(cfg=cfg, actor=actor, loss=loss, optimisers=optimisers, target_updater=target_updater)
