@@ -166,28 +166,23 @@ def nearest_distance(dist: Tensor) -> Tensor:
     return dist.amin(-1)
 
 
-def _slab(p: Tensor, d: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-    """Parameter interval [t_in, t_out] on which p + t·d lies in [lo, hi] along one axis."""
-    moving = d != 0
-    safe_d = torch.where(moving, d, torch.ones_like(d))
-    ta, tb = (lo - p) / safe_d, (hi - p) / safe_d
-    inside = (p >= lo) & (p <= hi)
-    # a still axis is either always inside the slab (-inf, +inf) or never (+inf, -inf)
-    still_in = torch.where(inside, -math.inf, math.inf).to(ta.dtype)
-    t_in = torch.where(moving, torch.minimum(ta, tb), still_in)
-    t_out = torch.where(moving, torch.maximum(ta, tb), -still_in)
-    return t_in, t_out
-
-
 def segment_hits_rects(p0: Tensor, p1: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
-    # Liang-Barsky: the segment p0 + t(p1-p0), t in [0,1], meets the closed rectangle iff max(t_in) <= min(t_out)
-    d = p1 - p0
+    # Separating axes of a segment and a closed box: the box's x and y axes (bounding boxes
+    # overlap) and the segment's normal (the corners are not all strictly on one side of its line).
     x0, y0, x1, y1 = _rect_parts(rects)
-    tx_in, tx_out = _slab(p0[..., 0:1], d[..., 0:1], x0, x1)
-    ty_in, ty_out = _slab(p0[..., 1:2], d[..., 1:2], y0, y1)
-    t_in = torch.maximum(tx_in, ty_in).clamp_min(0.0)
-    t_out = torch.minimum(tx_out, ty_out).clamp_max(1.0)
-    return (t_in <= t_out) & mask
+    ax, ay = p0[..., 0:1], p0[..., 1:2]
+    bx, by = p1[..., 0:1], p1[..., 1:2]
+    boxes = (
+        (torch.minimum(ax, bx) <= x1) & (torch.maximum(ax, bx) >= x0)
+        & (torch.minimum(ay, by) <= y1) & (torch.maximum(ay, by) >= y0)
+    )
+    dx, dy = bx - ax, by - ay
+    # side of corner (x, y): dx·(y - ay) - dy·(x - ax); extremes over the four corners
+    cy0, cy1 = dx * (y0 - ay), dx * (y1 - ay)
+    cx0, cx1 = dy * (x0 - ax), dy * (x1 - ax)
+    lo = torch.minimum(cy0, cy1) - torch.maximum(cx0, cx1)
+    hi = torch.maximum(cy0, cy1) - torch.minimum(cx0, cx1)
+    return boxes & (lo <= 0) & (hi >= 0) & mask
 
 
 def boundary_distance(p: Tensor, x_size: float, y_size: float) -> Tensor:
@@ -235,6 +230,51 @@ def _ou_move_ok(
     return ~hits.any(-1) & ~outside_area(end, x_size, y_size)
 
 
+def _retry_headings(
+    pos: Tensor, v: Tensor, ok: Tensor, headings: Tensor, blocked: Tensor, blocked_mask: Tensor,
+    x_size: float, y_size: float, t_fly: float,
+) -> Tensor:
+    """Velocities for the blocked OUs: same speed, the first of ``headings`` whose move is valid,
+    else 0 (hover). On CPU only the blocked OUs are tested (they are few); on an accelerator the
+    dense form avoids a host sync. Both give the same result."""
+    speed = torch.linalg.vector_norm(v, dim=-1)
+    tries_all = _heading_velocity(speed.expand_as(headings), headings)  # [T, ..., K, 2]
+    if pos.device.type == "cpu" and not torch.compiler.is_compiling():
+        out = torch.zeros_like(v)
+        bad = (~ok).nonzero(as_tuple=True)  # indices into [..., K]
+        if bad[0].numel() == 0:
+            return out
+        lead = bad[:-1]  # batch indices of each blocked OU
+        tries = tries_all[(slice(None), *bad)]  # [T, n, 2]
+        start = pos[bad]  # [n, 2], each with its own rectangles [n, Z, 4]
+        end = start + tries * t_fly
+        hits = segment_hits_rects(start, end, blocked[lead], blocked_mask[lead]).any(-1)
+        tries_ok = ~hits & ~outside_area(end, x_size, y_size)  # [T, n]
+        first = tries_ok.to(torch.uint8).argmax(0)  # argmax returns the first maximum
+        chosen = tries[first, torch.arange(first.numel(), device=pos.device)]
+        out[bad] = torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
+        return out
+    tries_ok = _ou_move_ok(pos, tries_all, blocked, blocked_mask, x_size, y_size, t_fly)  # [T, ..., K]
+    first = tries_ok.to(torch.uint8).argmax(0)
+    chosen = torch.gather(tries_all, 0, first[None, ..., None].expand(1, *tries_all.shape[1:])).squeeze(0)
+    return torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
+
+
+def ou_noise(
+    shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig, generator: torch.Generator,
+    device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
+) -> dict[str, Tensor]:
+    """The random draws of one OU slot for OUs of shape ``[..., K]``: every tensor is drawn every
+    slot, so the random stream depends on the seed only, not on the data."""
+    kw = dict(generator=generator, device=device, dtype=dtype)
+    return {
+        "turn": torch.rand(shape, **kw) < ou.p_turn,
+        "speed": torch.rand(shape, **kw) * m.v_max,
+        "heading": torch.rand(shape, **kw) * (2.0 * math.pi),
+        "retry_heading": torch.rand((ou.heading_tries, *shape), **kw) * (2.0 * math.pi),
+    }
+
+
 def ou_step(
     pos: Tensor,
     vel: Tensor,
@@ -245,29 +285,20 @@ def ou_step(
     y_size: float,
     ou: OUConfig,
     m: MotionConfig,
-    generator: torch.Generator,
+    generator: torch.Generator | None = None,
+    noise: dict[str, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     # SPEC §2: OU velocity redraw with prob p_turn, heading retries around BZ/NFZ/area edge, L' = L + v·t_fly
-    kw = dict(generator=generator, device=pos.device, dtype=pos.dtype)
-    shape = pos.shape[:-1]  # [..., K]
-    # every random tensor is drawn every slot, so the stream does not depend on the data
-    turn = torch.rand(shape, **kw) < ou.p_turn
-    new_speed = torch.rand(shape, **kw) * m.v_max
-    new_heading = torch.rand(shape, **kw) * (2.0 * math.pi)
-    retry_heading = torch.rand((ou.heading_tries, *shape), **kw) * (2.0 * math.pi)
+    if noise is None:
+        noise = ou_noise(pos.shape[:-1], ou, m, generator, pos.device, pos.dtype)
+    turn, new_speed, new_heading = noise["turn"], noise["speed"], noise["heading"]
+    retry_heading = noise["retry_heading"]
 
     v = torch.where(turn.unsqueeze(-1), _heading_velocity(new_speed, new_heading), vel)
     ok = _ou_move_ok(pos, v, blocked, blocked_mask, x_size, y_size, m.t_fly)
 
-    # a blocked move keeps its speed and tries new headings, all tries at once
-    speed = torch.linalg.vector_norm(v, dim=-1)
-    tries = _heading_velocity(speed.expand_as(retry_heading), retry_heading)  # [T, ..., K, 2]
-    tries_ok = _ou_move_ok(pos, tries, blocked, blocked_mask, x_size, y_size, m.t_fly)  # [T, ..., K]
-    first = tries_ok.to(torch.uint8).argmax(0)  # argmax returns the first maximum: the first valid try
-    chosen = torch.gather(tries, 0, first[None, ..., None].expand(1, *tries.shape[1:])).squeeze(0)
-    # no valid try: the OU hovers this slot and keeps no velocity
-    retry_vel = torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
-    v = torch.where(ok.unsqueeze(-1), v, retry_vel)
+    # a blocked move keeps its speed and tries new headings, the first valid one wins
+    v = torch.where(ok.unsqueeze(-1), v, _retry_headings(pos, v, ok | ~mask, retry_heading, blocked, blocked_mask, x_size, y_size, m.t_fly))
 
     present = mask.unsqueeze(-1)
     new_pos = torch.where(present, pos + v * m.t_fly, pos)

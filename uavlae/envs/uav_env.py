@@ -23,8 +23,9 @@ from uavlae.envs.world import (
     REWARD_KEYS,
     STATE_KEYS,
     ObservationLayout,
+    draw_noise,
     initial_state,
-    world_step,
+    world_step_core,
 )
 
 _BOOL_STATE = {"nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"}
@@ -63,6 +64,7 @@ class UAVEnv(EnvBase):
             raise ValueError(f"UAVEnv needs a one-dimensional batch_size [B] with B >= 1, got {list(batch_size)}")
         super().__init__(device=device, batch_size=batch_size)
         self.layout = ObservationLayout(self.cfg)
+        self._core = self._make_core()
         self._fixed: TensorDictBase | None = None
         self._pool: TensorDictBase | None = None
         self._pool_pos = 0
@@ -134,6 +136,16 @@ class UAVEnv(EnvBase):
             done=flag(1), terminated=flag(1), truncated=flag(1), shape=b, device=self.device
         )
 
+    def _make_core(self):
+        cfg, layout = self.cfg, self.layout
+
+        def core(state, action, noise):
+            nxt, events, terms, cost, terminated, truncated = world_step_core(state, action, noise, cfg)
+            reward = torch.stack(list(terms.values()), dim=0).sum(0)
+            return nxt, events, terms, cost, reward, terminated, truncated, layout.build(nxt)
+
+        return core
+
     def _set_seed(self, seed: int | None) -> None:
         rng = torch.Generator(device=self.device)
         rng.manual_seed(int(seed) if seed is not None else 0)
@@ -178,11 +190,12 @@ class UAVEnv(EnvBase):
         reward: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,
+        obs: torch.Tensor | None = None,
     ) -> TensorDict:
         b = self.batch_size
         out = TensorDict(
             {
-                "observation": self.layout.build(state),
+                "observation": self.layout.build(state) if obs is None else obs,
                 "state": TensorDict(state, batch_size=b),
                 "reward_terms": TensorDict({k: t.unsqueeze(-1) for k, t in terms.items()}, batch_size=b),
                 "events": TensorDict({k: e.unsqueeze(-1) for k, e in events.items()}, batch_size=b),
@@ -224,6 +237,7 @@ class UAVEnv(EnvBase):
         st = tensordict.get("state")
         state = {k: st.get(k) for k in STATE_KEYS}
         action = tensordict.get("action")
-        nxt, events, terms, cost, terminated, truncated = world_step(state, action, self.cfg, self.rng)
-        reward = torch.stack(list(terms.values()), dim=0).sum(0)
-        return self._output(nxt, events, terms, cost, reward, terminated, truncated)
+        nxt, events, terms, cost, reward, terminated, truncated, obs = self._core(
+            state, action, draw_noise(state, self.cfg, self.rng)
+        )
+        return self._output(nxt, events, terms, cost, reward, terminated, truncated, obs)

@@ -83,6 +83,14 @@ def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
     return state
 
 
+def draw_noise(state: dict[str, Tensor], cfg: EnvConfig, generator: torch.Generator) -> dict[str, Tensor]:
+    """Every random number one slot needs, drawn from the env's generator (outside the pure step)."""
+    ou_pos, ge = state["ou_pos"], state["ge_pos"]
+    noise = ph.ou_noise(ou_pos.shape[:-1], cfg.ou, cfg.motion, generator, ou_pos.device, ou_pos.dtype)
+    noise["ge_tie"] = torch.rand(ge.shape[:-1], generator=generator, device=ge.device, dtype=ge.dtype)
+    return noise
+
+
 def world_step(
     state: dict[str, Tensor], action: Tensor, cfg: EnvConfig, generator: torch.Generator
 ) -> tuple[dict[str, Tensor], dict[str, Tensor], dict[str, Tensor], Tensor, Tensor, Tensor]:
@@ -91,6 +99,13 @@ def world_step(
     Returns ``(next_state, events, reward_terms, cost, terminated, truncated)``; events and
     flags are bool ``[B]``, reward terms and cost float ``[B]``.
     """
+    return world_step_core(state, action, draw_noise(state, cfg, generator), cfg)
+
+
+def world_step_core(
+    state: dict[str, Tensor], action: Tensor, noise: dict[str, Tensor], cfg: EnvConfig
+) -> tuple[dict[str, Tensor], dict[str, Tensor], dict[str, Tensor], Tensor, Tensor, Tensor]:
+    """``world_step`` with its random draws given: deterministic, and ``torch.compile``-able."""
     m, a = cfg.motion, cfg.area
     p0 = state["position"]
     # Eq. (1): L_{t+1} = L_t + v t_fly, |v| <= v_max
@@ -105,19 +120,20 @@ def world_step(
     blocked = torch.cat([state["bz"], state["nfz"]], dim=-2)
     blocked_mask = torch.cat([state["bz_mask"], state["nfz_mask"]], dim=-1)
     ou_new, ou_vel = ph.ou_step(
-        ou_pos, state["ou_vel"], ou_mask, blocked, blocked_mask, a.x_size, a.y_size, cfg.ou, m, generator
+        ou_pos, state["ou_vel"], ou_mask, blocked, blocked_mask, a.x_size, a.y_size, cfg.ou, m, noise=noise
     )
     ou_u = (ou_new - ou_pos) / m.t_fly
     approach = ph.closest_approach(p0, v, ou_pos, ou_u, m.t_fly)
     ou_collision = ((approach < cfg.safety.r_coll) & ou_mask).any(-1)
     bz_collision = ph.segment_hits_rects(p0, p1_raw, state["bz"], state["bz_mask"]).any(-1)
     nfz_entry = ph.segment_hits_rects(p0, p1_raw, state["nfz"], state["nfz_mask"]).any(-1)
-    in_rz = ph.segment_hits_rects(p0, p1, state["rz"], state["rz_mask"]).any(-1)
-    rz_speeding = in_rz & (speed > m.v_limit)
+    in_rz = ph.segment_hits_rects(p0, p1_raw, state["rz"], state["rz_mask"]).any(-1)
+    # a tolerance of 1e-4 m/s so that flying exactly at v_limit (rounded in float32) is legal
+    rz_speeding = in_rz & (speed > m.v_limit + 1e-4)
 
     # Hover phase at L_{t+1}: TDMA service of at most one GE (SPEC §3).
     snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
-    tie = torch.rand(snr.shape, generator=generator, device=snr.device, dtype=snr.dtype)
+    tie = noise["ge_tie"]
     td, served, remaining = ph.serve_ge(
         snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
     )
