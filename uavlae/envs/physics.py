@@ -8,6 +8,7 @@ come with a boolean presence mask; absent entries never count. Rectangles are
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -80,14 +81,20 @@ def propulsion_power(speed: Tensor, e: EnergyConfig) -> Tensor:
     return blade + induced + parasite
 
 
+@functools.lru_cache(maxsize=64)
+def _power_at(speed: float, e: EnergyConfig) -> float:
+    """P(V) for one constant speed, in float64 (no tensor ops on the hot path)."""
+    return float(propulsion_power(torch.tensor(speed, dtype=torch.float64), e))
+
+
 def slot_energy(speed: Tensor, e: EnergyConfig, m: MotionConfig) -> Tensor:
     # SPEC §4: e(t) = P(|v|)·t_fly + P(0)·t_hover
-    return propulsion_power(speed, e) * m.t_fly + propulsion_power(torch.zeros_like(speed), e) * m.t_hover
+    return propulsion_power(speed, e) * m.t_fly + _power_at(0.0, e) * m.t_hover
 
 
 def min_return_energy(d_la: Tensor, e: EnergyConfig, m: MotionConfig) -> Tensor:
     # SPEC §7 r8: E_min = ceil(d_LA / (v_max·t_fly)) · (P(v_max)·t_fly + P(0)·t_hover)
-    per_slot = slot_energy(torch.full_like(d_la, m.v_max), e, m)
+    per_slot = _power_at(m.v_max, e) * m.t_fly + _power_at(0.0, e) * m.t_hover
     return torch.ceil(d_la / (m.v_max * m.t_fly)) * per_slot
 
 

@@ -192,13 +192,13 @@ class UAVEnv(EnvBase):
         truncated: torch.Tensor,
         obs: torch.Tensor | None = None,
     ) -> TensorDict:
-        b = self.batch_size
-        out = TensorDict(
+        b, new = self.batch_size, TensorDict._new_unsafe  # shapes are ours: skip re-validation
+        return new(
             {
                 "observation": self.layout.build(state) if obs is None else obs,
-                "state": TensorDict(state, batch_size=b),
-                "reward_terms": TensorDict({k: t.unsqueeze(-1) for k, t in terms.items()}, batch_size=b),
-                "events": TensorDict({k: e.unsqueeze(-1) for k, e in events.items()}, batch_size=b),
+                "state": new(state, batch_size=b),
+                "reward_terms": new({k: t.unsqueeze(-1) for k, t in terms.items()}, batch_size=b),
+                "events": new({k: e.unsqueeze(-1) for k, e in events.items()}, batch_size=b),
                 "cost": cost.unsqueeze(-1),
                 "reward": reward.unsqueeze(-1),
                 "done": (terminated | truncated).unsqueeze(-1),
@@ -208,7 +208,6 @@ class UAVEnv(EnvBase):
             batch_size=b,
             device=self.device,
         )
-        return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         rows = None
