@@ -1,0 +1,292 @@
+"""The collector and the replay buffer (STYLE.md: scenario → env → override policy → collector →
+replay buffer).
+
+:class:`UAVCollector` steps one batched :class:`~uavlae.envs.UAVEnv` with a policy (usually an
+:class:`~uavlae.policies.override.OverridePolicy`) in the calling process and yields batches of
+shape ``[B, T]`` (time last, as torchrl's collectors) holding what was executed: ``"action"``,
+``"action_source"`` and ``"next"`` with reward, done flags, cost, events and state. It is
+deliberately single-process: the LLM advisor's client, cache and local server stay in this
+process, and nothing of the policy is copied or pickled (see ``OverridePolicy.__deepcopy__``).
+
+``override_abort`` rows (failed advice with ``fallback="end_episode"``, paper §5.3) get
+``("next", "truncated")`` and ``("next", "done")`` set before the partial reset, so exactly
+those episodes end there. Finished episodes are measured with
+:class:`~uavlae.envs.metrics.EpisodeTracker`; :meth:`UAVCollector.episode_metrics` gives the
+records and the paper's aggregates since the last call.
+
+:func:`make_replay_buffer` builds the torchrl ``TensorDictReplayBuffer`` (``LazyTensorStorage``,
+uniform ``RandomSampler``) that takes the collector's batches flattened to ``[B * T]``
+transitions; its ``state_dict()`` / ``load_state_dict()`` hold the stored data for checkpoints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from uavlae.envs.metrics import EpisodeTracker, aggregate, concat_records
+from uavlae.policies.override import POLICY
+
+NestedKey = str | tuple[str, ...]
+
+# What a learner needs of a transition; the bulky static ("state", ...) entries are left out.
+# Missing keys are skipped, so this serves SAC/DDPG (replay) and PPO/CPO (log-probs) alike.
+TRANSITION_KEYS: tuple[NestedKey, ...] = (
+    "observation", "action", "action_source", "action_log_prob", "loc", "scale",
+    "done", "terminated", "truncated",
+    ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done"),
+    ("next", "terminated"), ("next", "truncated"), ("next", "events"), ("next", "reward_terms"),
+)
+
+__all__ = ["TRANSITION_KEYS", "UAVCollector", "make_replay_buffer"]
+
+
+class _UniformRandom(TensorDictModuleBase):
+    """Uniform actions in the env's action box, from the collector's own generator."""
+
+    in_keys: list = []
+    out_keys = ["action"]
+
+    def __init__(self, action_spec: Any, generator: torch.Generator):
+        super().__init__()
+        self.low = action_spec.space.low
+        self.high = action_spec.space.high
+        self.shape = action_spec.shape
+        self.generator = generator
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        u = torch.rand(self.shape, generator=self.generator).to(self.low.device)
+        td.set("action", self.low + (self.high - self.low) * u)
+        return td
+
+
+class UAVCollector:
+    """Batched on-process collector for :class:`~uavlae.envs.UAVEnv` (batch ``[B]``).
+
+    Args:
+        env: the env (``batch_size=[B]``); it is reset on the first batch.
+        policy: reads the root tensordict, writes ``"action"`` (an ``OverridePolicy`` also
+            writes ``"action_source"`` and ``"override_abort"``; other policies get
+            ``action_source = POLICY``).
+        frames_per_batch: env frames per yielded batch; ``T = frames_per_batch // B`` steps.
+        total_frames: stop after this many frames (``None`` or ``-1``: never stop).
+        init_random_frames: the first frames act with ``random_policy`` (the override, if
+            any, still applies on top: its advisor helps from the first step).
+        random_policy: default: uniform in the action box, seeded by ``seed``.
+        keep_keys: keys of the yielded batches (``None``: everything the env and policy
+            wrote; :data:`TRANSITION_KEYS`: what a learner needs, without the raw state).
+        exploration_type: the policy acts under it (``RANDOM``: sampled actions).
+        seed: seeds the random warm-up policy.
+        max_episodes_per_row: passed to the episode tracker.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        policy: Any,
+        frames_per_batch: int,
+        total_frames: int | None = None,
+        init_random_frames: int = 0,
+        random_policy: Any = None,
+        *,
+        keep_keys: Sequence[NestedKey] | None = None,
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+        seed: int = 0,
+        max_episodes_per_row: int | None = None,
+    ):
+        if len(env.batch_size) != 1:
+            raise ValueError(f"UAVCollector needs an env with batch_size [B], got {list(env.batch_size)}")
+        self.env = env
+        self.policy = policy
+        self.B = int(env.batch_size[0])
+        if frames_per_batch < self.B:
+            raise ValueError(f"frames_per_batch={frames_per_batch} must be >= the env batch size {self.B}")
+        self.T = int(frames_per_batch) // self.B
+        self.frames_per_batch = self.T * self.B
+        self.total_frames = -1 if total_frames is None else int(total_frames)
+        self.init_random_frames = int(init_random_frames)
+        self.generator = torch.Generator()
+        self.generator.manual_seed(int(seed))
+        self.random_policy = random_policy if random_policy is not None else _UniformRandom(env.action_spec, self.generator)
+        self.keep_keys = None if keep_keys is None else list(keep_keys)
+        self.exploration_type = exploration_type
+        self.tracker = EpisodeTracker(self.B, env.cfg, max_episodes_per_row=max_episodes_per_row, device=env.device)
+        self.frames = 0
+        self.batches = 0
+        self._td: TensorDictBase | None = None
+
+    # ------------------------------------------------------------------ stepping
+    def _reset(self) -> None:
+        self._td = self.env.reset()
+        self.tracker.reset()
+
+    def _act(self, td: TensorDictBase) -> TensorDictBase:
+        random = self.frames < self.init_random_frames
+        with set_exploration_type(self.exploration_type):
+            if random and hasattr(self.policy, "using_actor"):
+                with self.policy.using_actor(self.random_policy):
+                    td = self.policy(td)
+            elif random:
+                td = self.random_policy(td)
+            else:
+                td = self.policy(td)
+        if "action_source" not in td.keys() or not hasattr(self.policy, "using_actor"):
+            td.set("action_source", torch.full((self.B,), POLICY, dtype=torch.int64, device=td.device))
+        if "override_abort" not in td.keys() or not hasattr(self.policy, "using_actor"):
+            td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
+        return td
+
+    @torch.no_grad()
+    def step(self) -> TensorDictBase:
+        """One env step of every row: returns the transition ``[B]`` (with ``"next"``)."""
+        if self._td is None:
+            self._reset()
+        td = self._act(self._td)
+        td = self.env.step(td)
+        nxt = td.get("next")
+        abort = td.get("override_abort").reshape(self.B, 1)
+        if bool(abort.any()):
+            # paper §5.3: no valid LLM action after the attempts ends the episode; it is cut
+            # short (truncated), not terminal, so the value of the next state is still bootstrapped
+            nxt.set("truncated", nxt.get("truncated") | abort)
+            nxt.set("done", nxt.get("done") | abort)
+        self.tracker.update(nxt)
+        self._td = self.env.maybe_reset(step_mdp(td, exclude_action=True))
+        self.frames += self.B
+        return td if self.keep_keys is None else td.select(*self.keep_keys, strict=False)
+
+    def rollout_batch(self) -> TensorDictBase:
+        """``T`` steps of every row stacked to ``[B, T]`` (time last)."""
+        steps = [self.step().clone() for _ in range(self.T)]
+        # clone: a partial reset may write into tensors that a stored step still shares
+        batch = torch.stack(steps, dim=1)
+        self.batches += 1
+        return batch
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        while self.total_frames < 0 or self.frames < self.total_frames:
+            yield self.rollout_batch()
+
+    def __len__(self) -> int:
+        if self.total_frames < 0:
+            raise TypeError("an endless collector (total_frames=None) has no length")
+        return -(-self.total_frames // self.frames_per_batch)
+
+    # ------------------------------------------------------------------ reporting
+    def episode_metrics(self, clear: bool = True) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
+        """``(records, aggregates)`` of the episodes finished since the last call (``clear``):
+        column-wise per-episode records (``uavlae.envs.metrics.RECORD_COLUMNS``) and DCR, CR,
+        SLR, RVR, ECR, means of return, length, cost and of every reward term, ``n_episodes``."""
+        records = self.tracker.records()
+        if clear:
+            self.tracker.clear()
+        return records, aggregate(records)
+
+    def override_stats(self, reset: bool = False) -> dict[str, float]:
+        """The override policy's counters (trigger and override rates, sources, LLM counters)."""
+        snap = getattr(self.policy, "snapshot", None)
+        return dict(snap(reset=reset)) if snap is not None else {}
+
+    # ------------------------------------------------------------------ resume
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue collecting exactly where this one is (plain tensors and
+        dicts, loadable with ``torch.load(weights_only=True)``): frame counters, the env's RNG
+        and scenario pool, the current tensordict, the warm-up generator, the episode tracker
+        and the override policy's trigger generator and counters."""
+        env = self.env
+        pool = getattr(env, "_pool", None)
+        tr = self.tracker
+        out: dict[str, Any] = {
+            "frames": self.frames,
+            "batches": self.batches,
+            "generator": self.generator.get_state(),
+            "env_rng": env.rng.get_state() if getattr(env, "rng", None) is not None else None,
+            "env_pool": None if pool is None else pool.to_dict(),
+            "env_pool_batch": None if pool is None else list(pool.batch_size),
+            "env_pool_pos": getattr(env, "_pool_pos", 0),
+            "td": None if self._td is None else self._td.to_dict(),
+            "tracker": {
+                "acc": {k: v.clone() for k, v in tr._acc.items()},
+                "episodes_per_row": tr.episodes_per_row.clone(),
+                "records": tr.records(),
+            },
+        }
+        if hasattr(self.policy, "get_extra_state"):
+            out["policy_extra"] = self.policy.get_extra_state()
+        return out
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        env = self.env
+        self.frames = int(state["frames"])
+        self.batches = int(state.get("batches", 0))
+        self.generator.set_state(state["generator"])
+        if state.get("env_rng") is not None:
+            env.rng.set_state(state["env_rng"])
+        if hasattr(env, "_pool"):
+            pool = state.get("env_pool")
+            env._pool = None if pool is None else TensorDict(pool, batch_size=state["env_pool_batch"], device=env.device)
+            env._pool_pos = int(state.get("env_pool_pos", 0))
+        td = state.get("td")
+        self._td = None if td is None else TensorDict(td, batch_size=env.batch_size, device=env.device)
+        tr = state["tracker"]
+        self.tracker._acc = {k: v.clone().to(self.tracker.device) for k, v in tr["acc"].items()}
+        self.tracker.episodes_per_row = tr["episodes_per_row"].clone().to(self.tracker.device)
+        recs = tr["records"]
+        n = int(next(iter(recs.values())).numel()) if recs else 0
+        self.tracker._chunks = [dict(recs)] if n else []
+        if "policy_extra" in state and hasattr(self.policy, "set_extra_state"):
+            self.policy.set_extra_state(state["policy_extra"])
+
+    def shutdown(self) -> None:
+        """Close the policy's advisor (its client and any local server it started)."""
+        close = getattr(self.policy, "close", None)
+        if close is not None:
+            close()
+
+
+def make_replay_buffer(
+    capacity: int,
+    batch_size: int,
+    device: torch.device | str = "cpu",
+    storage: str = "lazy_tensor",
+    *,
+    seed: int | None = 0,
+    scratch_dir: str | None = None,
+) -> TensorDictReplayBuffer:
+    """Uniform replay of single transitions.
+
+    Extend it with ``batch.reshape(-1)`` (a collector batch ``[B, T]`` flattened to ``[B * T]``);
+    ``sample()`` returns ``[batch_size]`` on ``device``. ``storage``: ``"lazy_tensor"`` (RAM or
+    ``device`` memory) or ``"lazy_memmap"`` (memory-mapped files under ``scratch_dir``).
+    ``seed`` seeds the buffer's own sampling generator (None: torch's global RNG), which its
+    ``state_dict()`` saves with the data, the write cursor and the batch size.
+    """
+    if capacity < 1 or batch_size < 1:
+        raise ValueError(f"replay capacity ({capacity}) and batch_size ({batch_size}) must be >= 1")
+    if storage == "lazy_tensor":
+        store = LazyTensorStorage(int(capacity), device=device)
+    elif storage == "lazy_memmap":
+        store = LazyMemmapStorage(int(capacity), device=device, scratch_dir=scratch_dir)
+    else:
+        raise ValueError(f"replay storage must be 'lazy_tensor' or 'lazy_memmap', got {storage!r}")
+    generator = None
+    if seed is not None:
+        generator = torch.Generator()
+        generator.manual_seed(int(seed))
+    return TensorDictReplayBuffer(
+        storage=store, sampler=RandomSampler(), batch_size=int(batch_size), generator=generator
+    )
+
+
+def flatten_batch(batch: TensorDictBase) -> TensorDictBase:
+    """A collector batch ``[B, T]`` as ``[B * T]`` transitions for the replay buffer."""
+    return batch.reshape(-1)
+
+
+__all__ += ["flatten_batch"]
