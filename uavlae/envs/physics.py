@@ -173,16 +173,23 @@ def nearest_distance(dist: Tensor) -> Tensor:
     return dist.amin(-1)
 
 
+def _boxes_overlap(p0: Tensor, p1: Tensor, rects: Tensor) -> Tensor:
+    """The segment's bounding box meets the closed rectangle (p0, p1: [..., 2]; rects [..., 4])."""
+    x0, y0, x1, y1 = _rect_parts(rects)
+    ax, ay, bx, by = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    return (
+        (torch.minimum(ax, bx) <= x1) & (torch.maximum(ax, bx) >= x0)
+        & (torch.minimum(ay, by) <= y1) & (torch.maximum(ay, by) >= y0)
+    )
+
+
 def segment_hits_rects(p0: Tensor, p1: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
     # Separating axes of a segment and a closed box: the box's x and y axes (bounding boxes
     # overlap) and the segment's normal (the corners are not all strictly on one side of its line).
     x0, y0, x1, y1 = _rect_parts(rects)
     ax, ay = p0[..., 0:1], p0[..., 1:2]
     bx, by = p1[..., 0:1], p1[..., 1:2]
-    boxes = (
-        (torch.minimum(ax, bx) <= x1) & (torch.maximum(ax, bx) >= x0)
-        & (torch.minimum(ay, by) <= y1) & (torch.maximum(ay, by) >= y0)
-    )
+    boxes = _boxes_overlap(p0.unsqueeze(-2), p1.unsqueeze(-2), rects)
     dx, dy = bx - ax, by - ay
     # side of corner (x, y): dx·(y - ay) - dy·(x - ax); extremes over the four corners
     cy0, cy1 = dx * (y0 - ay), dx * (y1 - ay)
@@ -233,7 +240,22 @@ def _ou_move_ok(
 ) -> Tensor:
     """True where the OU move pos -> pos + vel·t_fly meets no blocked rectangle and ends inside A."""
     end = pos + vel * t_fly
-    hits = segment_hits_rects(pos, end, blocked.unsqueeze(-3), blocked_mask.unsqueeze(-2))
+    rects, rmask = blocked.unsqueeze(-3), blocked_mask.unsqueeze(-2)  # [..., 1, Z, 4], [..., 1, Z]
+    if pos.device.type == "cpu" and not torch.compiler.is_compiling():
+        # A move is at most v_max·t_fly long, so few (OU, rectangle) pairs even share a bounding
+        # box: run the exact test on those pairs only.
+        shape = torch.broadcast_shapes(end.shape[:-1] + (1,), rmask.shape)
+        near = _boxes_overlap(pos.unsqueeze(-2), end.unsqueeze(-2), rects) & rmask
+        near = near.expand(shape)
+        hits = torch.zeros(shape, dtype=torch.bool, device=pos.device)
+        idx = near.nonzero(as_tuple=True)
+        if idx[0].numel():
+            p0 = pos.unsqueeze(-2).expand(*shape, 2)[idx]
+            p1 = end.unsqueeze(-2).expand(*shape, 2)[idx]
+            r = rects.expand(*shape, 4)[idx]
+            hits[idx] = segment_hits_rects(p0, p1, r.unsqueeze(-2), torch.ones_like(idx[0], dtype=torch.bool).unsqueeze(-1)).squeeze(-1)
+    else:
+        hits = segment_hits_rects(pos, end, rects, rmask)
     return ~hits.any(-1) & ~outside_area(end, x_size, y_size)
 
 

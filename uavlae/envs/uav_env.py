@@ -153,18 +153,18 @@ class UAVEnv(EnvBase):
         self._pool, self._pool_pos = None, 0  # a new seed starts a new scenario stream
 
     # ------------------------------------------------------------------ data in / out
-    def _scenarios_for(self, rows: torch.Tensor) -> TensorDictBase:
-        """A batched scenario of size B whose rows listed in ``rows`` are fresh."""
+    def _scenarios_for(self, rows: torch.Tensor | None) -> tuple[TensorDictBase, torch.Tensor | None]:
+        """The scenarios to reset to, and for each of the B rows the index of its scenario
+        (``None``: one scenario per row, in order). Only the fresh ones are built, so a partial
+        reset of a few rows costs a few rows, plus one gather."""
         B = self.batch_size[0]
         if self._fixed is not None:
-            n = self._fixed.batch_size[0]
-            return self._fixed[torch.arange(B, device=self.device) % n]
+            return self._fixed, torch.arange(B, device=self.device) % self._fixed.batch_size[0]
         n = int(rows.sum().item()) if rows is not None else B
         fresh = self._draw(max(n, 1))
         if n == B:
-            return fresh
-        pos = (torch.cumsum(rows.long(), 0) - 1).clamp(min=0)
-        return fresh[pos]
+            return fresh, None
+        return fresh, (torch.cumsum(rows.long(), 0) - 1).clamp(min=0)
 
     def _draw(self, n: int) -> TensorDictBase:
         """``n`` fresh scenarios, taken in order from a pool refilled ``pool_size`` at a time."""
@@ -192,7 +192,7 @@ class UAVEnv(EnvBase):
         truncated: torch.Tensor,
         obs: torch.Tensor | None = None,
     ) -> TensorDict:
-        b, new = self.batch_size, TensorDict._new_unsafe  # shapes are ours: skip re-validation
+        b, new = state["position"].shape[:1], TensorDict._new_unsafe  # ours: skip re-validation
         return new(
             {
                 "observation": self.layout.build(state) if obs is None else obs,
@@ -215,22 +215,16 @@ class UAVEnv(EnvBase):
             rows = tensordict.get("_reset").reshape(self.batch_size)
             if bool(rows.all()):
                 rows = None
-        scen = self._scenarios_for(rows)
+        scen, pos = self._scenarios_for(rows)
         state = initial_state(scen.to_dict(), self.cfg)
-        B = self.batch_size[0]
-        zf = torch.zeros(B, device=self.device)
-        zb = torch.zeros(B, device=self.device, dtype=torch.bool)
+        n = scen.batch_size[0]
+        zf = torch.zeros(n, device=self.device)
+        zb = torch.zeros(n, device=self.device, dtype=torch.bool)
         out = self._output(
-            state,
-            {k: zb for k in EVENT_KEYS},
-            {k: zf for k in REWARD_KEYS},
-            zf,
-            zf,
-            zb,
-            zb,
+            state, {k: zb for k in EVENT_KEYS}, {k: zf for k in REWARD_KEYS}, zf, zf, zb, zb
         )
         del out["reward"]
-        return out
+        return out if pos is None else out[pos]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         st = tensordict.get("state")
