@@ -213,6 +213,17 @@ def test_ddpg_update_and_exploration(env, obs_dim, replay_batch):
     assert float(ddpg.noise.sigma) < sigma0
 
 
+def test_ddpg_ou_noise(env, obs_dim, replay_batch):
+    ddpg = make_ddpg({"noise": {"kind": "ou", "sigma_init": 0.2, "sigma_end": 0.1}}, obs_dim, env.action_spec)
+    td = env.reset()
+    td["is_init"] = torch.ones(8, 1, dtype=torch.bool)  # what torchrl's InitTracker writes
+    with set_exploration_type(ExplorationType.RANDOM):
+        a = ddpg.exploration_policy(td)["action"]
+    assert a.shape == (8, 2) and a.abs().max() <= 1.0
+    ddpg.noise.step(10_000)
+    assert all_finite(ddpg.update(replay_batch.clone()))
+
+
 def test_ppo_update(env, obs_dim):
     ppo = make_ppo({"epochs": 2, "minibatch_size": 32}, obs_dim, env.action_spec)
     batch = on_policy_batch(env, ppo.actor)

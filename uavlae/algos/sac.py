@@ -64,8 +64,8 @@ class SAC:
     _in_keys: list = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
-        # Only the loss is compiled: it traces without graph breaks, whereas compiling the
-        # optimiser steps and SoftUpdate too broke the graph and ran slower than eager.
+        # Only the loss is compiled: it traces without graph breaks; a first try compiling the
+        # optimiser steps and SoftUpdate too ran slower than eager (benchmarks/sac_update_speed.md).
         self._loss_fn = torch.compile(self.loss) if self.cfg.compile else self.loss
         self._in_keys = list(self.loss.in_keys)
 
