@@ -1,0 +1,408 @@
+"""``make_*`` factories for the entry points, one per config group (STYLE.md rule 5).
+
+``conf/env`` -> :func:`make_env`, ``conf/algo`` -> :func:`make_learner`, ``conf/advisor`` (+ the
+``heuristic`` and ``llm`` nodes) -> :func:`make_policy` / :func:`make_controller`,
+``conf/logger`` -> :func:`make_logger`, ``conf/trainer`` -> :func:`make_trainer_config`.
+Each validates its node with a pydantic model (unknown keys and out-of-range values are errors
+that name the field); the env, algo, heuristic and LLM models live with their code.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as metadata
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from uavlae.algos import OFF_POLICY, make_learner as _make_learner
+from uavlae.envs import EnvConfig, UAVEnv, make_env_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+CONF_DIR = REPO_ROOT / "conf"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+
+
+def _container(cfg: Any) -> dict[str, Any]:
+    if cfg is None:
+        return {}
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    if isinstance(cfg, BaseModel):
+        return cfg.model_dump()
+    return dict(cfg)
+
+
+def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
+    if isinstance(cfg, model):
+        return cfg
+    try:
+        return model.model_validate(_container(cfg))
+    except ValidationError as e:
+        lines = [
+            f"{group}.{'.'.join(str(p) for p in err['loc'])}: {err['msg']} (got {err.get('input')!r})"
+            for err in e.errors()
+        ]
+        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(lines)) from None
+
+
+# ---------------------------------------------------------------------------- configs
+
+
+class TrainerConfig(_Strict):
+    """``conf/trainer``: the loop's numbers."""
+
+    total_frames: int = Field(ge=1)
+    env_batch_size: int = Field(ge=1)
+    frames_per_batch: int = Field(ge=1)
+    init_random_frames: int = Field(ge=0)
+    utd_ratio: float = Field(gt=0)
+    replay_capacity: int = Field(ge=1)
+    batch_size: int = Field(ge=1)
+    checkpoint_replay_buffer: bool
+    eval_every_frames: int = Field(ge=0)
+    eval_episodes: int = Field(ge=1)
+    eval_seed: int
+    eval_set: str | None
+    eval_max_steps: int | None = Field(ge=1)
+    eval_plots: int = Field(ge=0)
+    checkpoint_every_frames: int = Field(ge=0)
+    keep_checkpoints: int = Field(ge=1, le=2)
+    progress_bar: bool
+    log_every_batches: int = Field(ge=1)
+
+    @model_validator(mode="after")
+    def _divisible(self) -> "TrainerConfig":
+        if self.frames_per_batch % self.env_batch_size:
+            raise ValueError(
+                f"trainer.frames_per_batch={self.frames_per_batch} must be a multiple of "
+                f"trainer.env_batch_size={self.env_batch_size} (each batch is [B, T])"
+            )
+        return self
+
+
+class AdvisorConfig(_Strict):
+    """``conf/advisor``: who overrides the learner's action, and when (SPEC.md §8)."""
+
+    mode: Literal["proximity", "fixed_prob", "always", "never"]
+    kind: Literal["none", "llm", "heuristic"]
+    d_th: float = Field(ge=0)  # m
+    fp: float = Field(ge=0, le=1)
+    fallback: Literal["policy", "heuristic", "end_episode"]
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "AdvisorConfig":
+        if (self.kind == "none") != (self.mode == "never"):
+            raise ValueError(f"advisor.kind={self.kind!r} and advisor.mode={self.mode!r}: kind none goes with mode never")
+        return self
+
+
+class WandbConfig(_Strict):
+    mode: Literal["offline", "online", "disabled"]
+    project: str
+    entity: str | None
+    group: str | None
+    tags: tuple[str, ...]
+
+
+class LoggerConfig(_Strict):
+    """``conf/logger``."""
+
+    csv: bool
+    wandb: WandbConfig
+
+
+class RunConfig(_Strict):
+    """The root keys of ``conf/config.yaml``."""
+
+    name: str = Field(min_length=1)
+    controller: Literal["learner", "heuristic", "llm"]
+    seed: int
+    device: str
+    threads: int = Field(ge=1)
+    run_dir: str
+    resume: str | None
+    checkpoint: str | None
+
+
+def make_trainer_config(cfg: Any) -> TrainerConfig:
+    return _validate(TrainerConfig, cfg, "trainer")
+
+
+def make_advisor_config(cfg: Any) -> AdvisorConfig:
+    return _validate(AdvisorConfig, cfg, "advisor")
+
+
+def make_logger_config(cfg: Any) -> LoggerConfig:
+    return _validate(LoggerConfig, cfg, "logger")
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Validate every group of a composed config; ``ValueError`` names the bad field."""
+    root = {k: cfg[k] for k in RunConfig.model_fields}
+    run = _validate(RunConfig, root, "config")
+    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic"}
+    unknown = sorted(set(cfg.keys()) - known - {"hydra"})
+    if unknown:
+        raise ValueError(f"unknown top-level config keys {unknown}")
+    make_env_config(cfg.env)
+    make_trainer_config(cfg.trainer)
+    make_logger_config(cfg.logger)
+    adv = make_advisor_config(cfg.advisor)
+    from uavlae.policies.heuristic import make_heuristic_config
+
+    make_heuristic_config(cfg.heuristic)
+    if run.controller == "learner":
+        if cfg.get("algo") is None:
+            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo)")
+        from uavlae.algos import MAKERS
+
+        name = cfg.algo.name
+        if name not in MAKERS:
+            raise ValueError(f"algo.name must be one of {sorted(MAKERS)}, got {name!r}")
+        _algo_config(cfg.algo)
+        if adv.kind != "none" and name not in OFF_POLICY:
+            raise ValueError(
+                f"advisor.kind={adv.kind!r} with algo {name!r}: the override stores executed actions for an "
+                "off-policy learner; on-policy PPO/CPO would need the advisor's log-probabilities"
+            )
+    if adv.kind == "llm" or run.controller == "llm":
+        from uavlae.llm import make_llm_config
+
+        make_llm_config(cfg.llm)
+
+
+def _algo_config(cfg: Any) -> Any:
+    from uavlae.algos.ddpg import make_ddpg_config
+    from uavlae.algos.ppo import make_ppo_config
+    from uavlae.algos.ppo_lagrangian import make_cpo_config
+    from uavlae.algos.sac import make_sac_config
+
+    makers = {"sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config}
+    return makers[cfg.name](cfg)
+
+
+# ---------------------------------------------------------------------------- env
+
+
+def make_env(
+    env_cfg: EnvConfig | Any,
+    batch_size: int,
+    *,
+    seed: int,
+    device: str | torch.device = "cpu",
+    scenarios: Any = None,
+) -> UAVEnv:
+    """``conf/env`` -> the batched world (its own generator seeded with ``seed``)."""
+    return UAVEnv(make_env_config(env_cfg), batch_size=batch_size, device=device, seed=seed, scenarios=scenarios)
+
+
+# ---------------------------------------------------------------------------- learner and policies
+
+
+def make_learner(algo_cfg: Any, env: UAVEnv) -> Any:
+    """``conf/algo`` -> a learner (``actor``, ``update``, ``state_dict``) sized for ``env``."""
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    return _make_learner(algo_cfg, obs_dim, env.action_spec)
+
+
+def behaviour_actor(learner: Any) -> Any:
+    """The module that acts while collecting: DDPG's noisy policy, the others' actor."""
+    return getattr(learner, "exploration_policy", None) or learner.actor
+
+
+def make_heuristic(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
+    """The ``heuristic`` node -> :class:`uavlae.policies.heuristic.HeuristicPolicy`."""
+    from uavlae.policies.heuristic import HeuristicPolicy
+
+    return HeuristicPolicy(env_cfg, _container(cfg.heuristic))
+
+
+def make_llm_advisor(cfg: DictConfig) -> Any:
+    """``conf/llm`` -> :class:`uavlae.llm.LLMAdvisor` (it starts the local server on first use
+    when ``llm.base_url`` is null; the API key is read from ``llm.api_key_env`` only)."""
+    from uavlae.llm import LLMAdvisor, make_llm_config
+
+    return LLMAdvisor(make_llm_config(cfg.llm))
+
+
+def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | None = None) -> Any:
+    """``conf/advisor`` -> the collection policy: ``actor`` alone, or wrapped by
+    :class:`uavlae.policies.override.OverridePolicy` with an LLM or heuristic advisor."""
+    from uavlae.policies.override import HeuristicAdvisor, LLMAdvisorAdapter, OverridePolicy
+
+    adv = make_advisor_config(cfg.advisor)
+    if adv.kind == "none":
+        # wrapped all the same: one policy type for the collector (action_source, resume state)
+        return OverridePolicy(actor, None, mode="never", fallback="policy", seed=int(cfg.seed if seed is None else seed))
+
+    heuristic = make_heuristic(cfg, env_cfg) if (adv.kind == "heuristic" or adv.fallback == "heuristic") else None
+    if adv.kind == "heuristic":
+        advisor: Any = HeuristicAdvisor(heuristic)
+    else:
+        advisor = LLMAdvisorAdapter(make_llm_advisor(cfg), env_cfg)
+    return OverridePolicy(
+        actor,
+        advisor,
+        mode=adv.mode,
+        d_th=adv.d_th,
+        fp=adv.fp,
+        fallback=adv.fallback,
+        heuristic=heuristic,
+        seed=int(cfg.seed if seed is None else seed),
+    )
+
+
+def make_controller(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
+    """The evaluation-only controllers: ``heuristic`` (the greedy baseline) or ``llm`` (the
+    LLM at every step, the heuristic for failed answers when ``advisor.fallback=heuristic``)."""
+    heuristic = make_heuristic(cfg, env_cfg)
+    if cfg.controller == "heuristic":
+        return heuristic
+    if cfg.controller == "llm":
+        return make_policy(cfg, heuristic, env_cfg)
+    raise ValueError(f"controller must be heuristic or llm here, got {cfg.controller!r}")
+
+
+# ---------------------------------------------------------------------------- logging
+
+
+def git_info() -> dict[str, Any]:
+    """The commit of the code that ran, and whether tracked files differed from it."""
+
+    def git(*args: str) -> str | None:
+        try:
+            out = subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return out.stdout.strip() if out.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit, "dirty": bool(status) if status is not None else None}
+
+
+def package_versions() -> dict[str, str | None]:
+    out: dict[str, str | None] = {"python": sys.version.split()[0]}
+    for name in ("uavlae", "torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "numpy", "pydantic", "wandb"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+class RunLogger:
+    """torchrl's ``CSVLogger`` (always) and ``WandbLogger`` (unless disabled) behind one call.
+
+    Every metric goes with ``step`` = environment frames. ``state_dict`` holds what resuming
+    needs: the CSV logger's counters and the wandb run id.
+    """
+
+    def __init__(self, loggers: Mapping[str, Any], run_id: str):
+        self.loggers = dict(loggers)
+        self.run_id = run_id
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        clean = {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        if not clean:
+            return
+        for lg in self.loggers.values():
+            lg.log_metrics(clean, step=int(step))
+
+    def log_hparams(self, cfg: Mapping[str, Any]) -> None:
+        for name, lg in self.loggers.items():
+            if name == "wandb":
+                lg.log_hparams(dict(cfg))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"run_id": self.run_id, **{k: lg.state_dict() for k, lg in self.loggers.items()}}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        for k, lg in self.loggers.items():
+            if k in state:
+                lg.load_state_dict(state[k])
+
+    def close(self) -> None:
+        for lg in self.loggers.values():
+            close = getattr(lg, "close", None)
+            if close is not None:
+                close()
+
+
+def trim_csv_scalars(log_dir: Path, max_step: int) -> None:
+    """Drop CSV rows logged after ``max_step`` (a resumed run logs those frames again)."""
+    for f in Path(log_dir).rglob("*.csv"):
+        lines = f.read_text().splitlines()
+        kept = [ln for ln in lines if ln and int(float(ln.split(",", 1)[0])) <= max_step]
+        if len(kept) != len(lines):
+            f.write_text("".join(ln + "\n" for ln in kept))
+
+
+def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any]) -> RunLogger:
+    """``conf/logger`` -> :class:`RunLogger`; CSV under ``<run_dir>/logs/scalars``, the wandb
+    run (offline by default) under ``<run_dir>/wandb`` with the resolved config, the git
+    commit and the package versions."""
+    from torchrl.record.loggers import CSVLogger
+
+    lc = make_logger_config(cfg.logger)
+    loggers: dict[str, Any] = {}
+    if lc.csv:
+        loggers["csv"] = CSVLogger(exp_name="logs", log_dir=str(run_dir))
+    if lc.wandb.mode != "disabled":
+        from torchrl.record.loggers import WandbLogger
+
+        loggers["wandb"] = WandbLogger(
+            exp_name=str(cfg.name),
+            offline=lc.wandb.mode == "offline",
+            save_dir=str(run_dir),
+            id=run_id,
+            project=lc.wandb.project,
+            entity=lc.wandb.entity,
+            group=lc.wandb.group,
+            tags=list(lc.wandb.tags),
+            config=dict(hparams),
+            mode=lc.wandb.mode,
+        )
+    return RunLogger(loggers, run_id)
+
+
+def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:
+    return {"git": git_info(), "packages": package_versions(), "argv": list(sys.argv), "pid": os.getpid()}
+
+
+def redact_secrets(cfg_dict: dict[str, Any]) -> dict[str, Any]:
+    """Refuse to write a config that holds the LLM API key itself (only its variable's name
+    may appear): any string equal to the key's value becomes ``"***"``."""
+    name = (cfg_dict.get("llm") or {}).get("api_key_env")
+    secret = os.environ.get(name) if name else None
+    if not secret:
+        return cfg_dict
+
+    def walk(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: walk(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [walk(v) for v in x]
+        if isinstance(x, str) and secret in x:
+            return x.replace(secret, "***")
+        return x
+
+    return walk(cfg_dict)
+
+
+def dump_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=str))
+    os.replace(tmp, path)
