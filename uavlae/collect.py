@@ -136,9 +136,8 @@ class UAVCollector:
                 td = self.random_policy(td)
             else:
                 td = self.policy(td)
-        if "action_source" not in td.keys() or not hasattr(self.policy, "using_actor"):
+        if not hasattr(self.policy, "using_actor"):  # not an OverridePolicy: the policy acted
             td.set("action_source", torch.full((self.B,), POLICY, dtype=torch.int64, device=td.device))
-        if "override_abort" not in td.keys() or not hasattr(self.policy, "using_actor"):
             td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
         return td
 
@@ -157,14 +156,17 @@ class UAVCollector:
             nxt.set("truncated", nxt.get("truncated") | abort)
             nxt.set("done", nxt.get("done") | abort)
         self.tracker.update(nxt)
-        self._td = self.env.maybe_reset(step_mdp(td, exclude_action=True))
+        out = td if self.keep_keys is None else td.select(*self.keep_keys, strict=False)
+        # clone: the partial reset below writes in place (TensorDict.where(out=...)) into the
+        # tensors that the next root shares with this transition's "next"
+        out = out.clone()
+        self._td = self.env.maybe_reset(step_mdp(td, keep_other=False, exclude_action=True))
         self.frames += self.B
-        return td if self.keep_keys is None else td.select(*self.keep_keys, strict=False)
+        return out
 
     def rollout_batch(self) -> TensorDictBase:
         """``T`` steps of every row stacked to ``[B, T]`` (time last)."""
-        steps = [self.step().clone() for _ in range(self.T)]
-        # clone: a partial reset may write into tensors that a stored step still shares
+        steps = [self.step() for _ in range(self.T)]
         batch = torch.stack(steps, dim=1)
         self.batches += 1
         return batch

@@ -1,0 +1,300 @@
+"""The override module: who acts per row, what reaches the advisor, and the fallbacks."""
+
+from __future__ import annotations
+
+import copy
+import math
+import pickle
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from uavlae.policies.override import (
+    FALLBACK,
+    HEURISTIC,
+    LLM,
+    POLICY,
+    HeuristicAdvisor,
+    LLMAdvisorAdapter,
+    OverridePolicy,
+)
+
+INF = math.inf
+
+
+class ConstActor(nn.Module):
+    """action = (0.25, -0.25) in every row: easy to tell from the advisor's."""
+
+    def forward(self, obs):
+        return torch.tensor([0.25, -0.25]).expand(obs.shape[0], 2).clone()
+
+
+def const_actor():
+    return TensorDictModule(ConstActor(), in_keys=["observation"], out_keys=["action"])
+
+
+class RecordingAdvisor:
+    """Records what it was given; answers action = (row / 10, 0.5), ok where ``fail`` says not."""
+
+    source = LLM
+
+    def __init__(self, fail_rows=()):
+        self.fail_rows = set(fail_rows)
+        self.calls = []
+
+    def advise(self, td_rows, rows):
+        self.calls.append((rows.clone(), td_rows.clone()))
+        actions = torch.stack([rows.float() / 10, torch.full((rows.numel(),), 0.5)], dim=-1)
+        ok = torch.tensor([int(r) not in self.fail_rows for r in rows], dtype=torch.bool)
+        return actions, ok
+
+
+class FakeHeuristic:
+    """Stands in for HeuristicPolicy.act: action = (-0.9, 0.9), records the rows' positions."""
+
+    def __init__(self):
+        self.seen = []
+
+    def act(self, state):
+        self.seen.append(state["position"].clone())
+        return torch.tensor([-0.9, 0.9]).expand(state["position"].shape[0], 2).clone()
+
+
+def batch(d_bz, d_nfz, d_rz, d_ou):
+    """A hand-made [B] root tensordict: observation and the env's distances (+ a row tag)."""
+    B = len(d_bz)
+    state = {k: torch.tensor(v, dtype=torch.float32) for k, v in
+             dict(d_bz=d_bz, d_nfz=d_nfz, d_rz=d_rz, d_ou=d_ou).items()}
+    state["position"] = torch.arange(B, dtype=torch.float32).unsqueeze(-1).expand(B, 2).clone()
+    return TensorDict({"observation": torch.zeros(B, 3), "state": TensorDict(state, [B])}, [B])
+
+
+# rows 1 (BZ at 3 m), 3 (OU exactly at d_th) and 4 (inside an RZ: 0 m) are within 15 m
+D = dict(
+    d_bz=[INF, 3.0, 40.0, 20.0, INF, 15.5],
+    d_nfz=[100.0, 60.0, INF, INF, INF, INF],
+    d_rz=[INF, 50.0, 30.0, 16.0, 0.0, INF],
+    d_ou=[INF, INF, 22.0, 15.0, INF, 100.0],
+)
+TRIGGERED = [1, 3, 4]
+
+
+def test_only_triggered_rows_reach_the_advisor_and_actions_merge():
+    adv = RecordingAdvisor()
+    pol = OverridePolicy(const_actor(), adv, mode="proximity", d_th=15.0)
+    out = pol(batch(**D))
+    (rows, td_rows), = adv.calls
+    assert rows.tolist() == TRIGGERED
+    # the advisor saw exactly those rows' data (positions tag the rows)
+    assert td_rows.batch_size == torch.Size([3])
+    assert td_rows["state", "position"][:, 0].tolist() == [1.0, 3.0, 4.0]
+    assert td_rows["state", "d_bz"].tolist() == [3.0, 20.0, INF]
+    expect = torch.tensor([[0.25, -0.25]] * 6)
+    for r in TRIGGERED:
+        expect[r] = torch.tensor([r / 10, 0.5])
+    torch.testing.assert_close(out["action"], expect)
+    assert out["action_source"].dtype == torch.int64
+    assert out["action_source"].tolist() == [POLICY, LLM, POLICY, LLM, LLM, POLICY]
+    assert not out["override_abort"].any()
+
+
+def test_no_triggered_row_means_no_call():
+    adv = RecordingAdvisor()
+    pol = OverridePolicy(const_actor(), adv, mode="proximity", d_th=15.0)
+    far = [16.0, INF, 30.0, 100.0, INF, 15.01]
+    out = pol(batch(far, far, far, far))
+    assert adv.calls == [] and out["action_source"].tolist() == [POLICY] * 6
+
+
+@pytest.mark.parametrize("mode,expected", [("always", list(range(6))), ("never", [])])
+def test_always_and_never(mode, expected):
+    adv = RecordingAdvisor()
+    out = OverridePolicy(const_actor(), adv, mode=mode)(batch(**D))
+    assert (adv.calls[0][0].tolist() if adv.calls else []) == expected
+    assert (out["action_source"] == LLM).nonzero().squeeze(-1).tolist() == expected
+
+
+def test_fixed_prob_rate_is_fp_and_seeded():
+    n, fp = 20_000, 0.3
+    far = [INF] * n
+    td = batch(far, far, far, far)
+    trig = OverridePolicy(const_actor(), RecordingAdvisor(), mode="fixed_prob", fp=fp, seed=7).trigger(td)
+    rate = trig.float().mean().item()
+    assert abs(rate - fp) < 4 * math.sqrt(fp * (1 - fp) / n)  # ~0.013
+    again = OverridePolicy(const_actor(), RecordingAdvisor(), mode="fixed_prob", fp=fp, seed=7).trigger(td)
+    other = OverridePolicy(const_actor(), RecordingAdvisor(), mode="fixed_prob", fp=fp, seed=8).trigger(td)
+    assert torch.equal(trig, again) and not torch.equal(trig, other)
+    # whatever the surroundings: the trigger ignores the distances
+    adv = RecordingAdvisor()
+    out = OverridePolicy(const_actor(), adv, mode="fixed_prob", fp=fp, seed=7)(td)
+    assert torch.equal(out["action_source"] == LLM, trig)
+    assert adv.calls[0][0].tolist() == trig.nonzero().squeeze(-1).tolist()
+
+
+def test_fallback_policy_keeps_the_actor_action():
+    adv = RecordingAdvisor(fail_rows={3})
+    out = OverridePolicy(const_actor(), adv, mode="proximity", fallback="policy")(batch(**D))
+    assert out["action_source"].tolist() == [POLICY, LLM, POLICY, FALLBACK, LLM, POLICY]
+    torch.testing.assert_close(out["action"][3], torch.tensor([0.25, -0.25]))
+    torch.testing.assert_close(out["action"][1], torch.tensor([0.1, 0.5]))
+    assert not out["override_abort"].any()
+
+
+def test_fallback_heuristic_acts_on_the_failed_rows_only():
+    h = FakeHeuristic()
+    adv = RecordingAdvisor(fail_rows={1, 4})
+    out = OverridePolicy(const_actor(), adv, fallback="heuristic", heuristic=h)(batch(**D))
+    assert out["action_source"].tolist() == [POLICY, FALLBACK, POLICY, LLM, FALLBACK, POLICY]
+    (pos,) = h.seen
+    assert pos[:, 0].tolist() == [1.0, 4.0]
+    torch.testing.assert_close(out["action"][[1, 4]], torch.tensor([[-0.9, 0.9], [-0.9, 0.9]]))
+    torch.testing.assert_close(out["action"][3], torch.tensor([0.3, 0.5]))
+    with pytest.raises(ValueError, match="heuristic"):
+        OverridePolicy(const_actor(), adv, fallback="heuristic")
+
+
+def test_fallback_end_episode_flags_the_row():
+    adv = RecordingAdvisor(fail_rows={4})
+    pol = OverridePolicy(const_actor(), adv, fallback="end_episode")
+    out = pol(batch(**D))
+    assert out["override_abort"].tolist() == [False, False, False, False, True, False]
+    assert out["action_source"][4] == FALLBACK
+    torch.testing.assert_close(out["action"][4], torch.tensor([0.25, -0.25]))
+    snap = pol.snapshot()
+    assert snap["aborts"] == 1 and snap["source/fallback"] == 1 and snap["triggered"] == 3
+
+
+def test_fallback_none_takes_the_advisors_setting():
+    adv = RecordingAdvisor()
+    adv.fallback = "end_episode"
+    assert OverridePolicy(const_actor(), adv, fallback=None).fallback == "end_episode"
+    assert OverridePolicy(const_actor(), RecordingAdvisor(), fallback=None).fallback == "policy"
+    with pytest.raises(ValueError, match="fallback"):
+        OverridePolicy(const_actor(), adv, fallback="nope")
+    with pytest.raises(ValueError, match="mode"):
+        OverridePolicy(const_actor(), adv, mode="sometimes")
+
+
+def test_actor_only_in_evaluation():
+    adv = RecordingAdvisor()
+    pol = OverridePolicy(const_actor(), adv, mode="always")
+    with pol.actor_only():
+        out = pol(batch(**D))
+    assert adv.calls == [] and out["action_source"].tolist() == [POLICY] * 6
+    assert pol.snapshot()["frames"] == 0  # evaluation frames are not counted
+    pol.deterministic = True
+    pol(batch(**D))
+    assert adv.calls == []
+
+
+def test_deterministic_actor_is_the_mean():
+    from uavlae.envs import UAVEnv
+    from uavlae.policies.networks import make_sac_actor
+
+    env = UAVEnv(batch_size=[3], seed=0)
+    torch.manual_seed(0)
+    pol = OverridePolicy(make_sac_actor(env.layout.size, env.action_spec), RecordingAdvisor(), mode="always")
+    td = env.reset()
+    pol.deterministic = True
+    a1 = pol(td.clone())["action"]
+    a2 = pol(td.clone())["action"]
+    torch.testing.assert_close(a1, a2)
+    torch.testing.assert_close(a1, torch.tanh(pol(td.clone())["loc"]))
+
+
+def test_counters_and_rates():
+    adv = RecordingAdvisor(fail_rows={3})
+    pol = OverridePolicy(const_actor(), adv)
+    pol(batch(**D))
+    pol(batch(**D))
+    s = pol.snapshot(reset=True)
+    assert s["frames"] == 12 and s["triggered"] == 6
+    assert s["source/policy"] == 6 and s["source/llm"] == 4 and s["source/fallback"] == 2
+    assert s["trigger_rate"] == 0.5 and s["override_rate"] == pytest.approx(4 / 12)
+    assert s["advice_fail_rate"] == pytest.approx(2 / 6)
+    assert pol.snapshot()["frames"] == 0
+
+
+def test_extra_state_round_trip_and_no_deepcopy():
+    pol = OverridePolicy(const_actor(), RecordingAdvisor(), mode="fixed_prob", fp=0.5, seed=3)
+    far = [INF] * 64
+    pol(batch(far, far, far, far))
+    sd = pol.state_dict()
+    nxt = pol.trigger(batch(far, far, far, far))
+    other = OverridePolicy(const_actor(), RecordingAdvisor(), mode="fixed_prob", fp=0.5, seed=99)
+    other.load_state_dict(sd)
+    assert torch.equal(other.trigger(batch(far, far, far, far)), nxt)
+    assert other.counts == pol.counts
+    with pytest.raises(TypeError, match="actor"):
+        copy.deepcopy(pol)
+    copy.deepcopy(pol.actor)  # a target network copies the actor, which is fine
+
+
+class FakeLLM:
+    """Mimics LLMAdvisor.advise_sync and .stats: answers per state, in order."""
+
+    def __init__(self, answers):
+        from uavlae.llm import make_llm_config
+
+        self.cfg = make_llm_config("local", cache_mode="off", fallback="heuristic")
+        self.answers = answers
+        self.got = []
+
+    def advise_sync(self, states, timeout=None):
+        self.got.append(states)
+        return self.answers[: len(states)]
+
+
+def _env_rows():
+    from uavlae.envs import UAVEnv
+
+    env = UAVEnv(batch_size=[3], seed=1)
+    return env, env.reset()
+
+
+def test_llm_adapter_converts_velocity_and_failures():
+    from uavlae.llm import Advice, AdviceFailure, FailureKind
+
+    env, td = _env_rows()
+    fake = FakeLLM([Advice(vx=5.0, vy=-10.0, confidence=0.9, reasoning="r"),
+                    AdviceFailure(kind=FailureKind.OVER_SPEED, detail="x", attempts=10, fallback="heuristic")])
+    ad = LLMAdvisorAdapter(fake, env.cfg)
+    actions, ok = ad.advise(td[torch.tensor([0, 2])], torch.tensor([0, 2]))
+    v_max = env.cfg.motion.v_max
+    torch.testing.assert_close(actions[0], torch.tensor([5.0 / v_max, -10.0 / v_max]))
+    assert ok.tolist() == [True, False]
+    (states,) = fake.got  # both rows in one call: sent concurrently by the advisor
+    pos = td["state", "position"]
+    assert [s.position for s in states] == [tuple(pos[0].tolist()), tuple(pos[2].tolist())]
+    assert states[0].limits.v_max == v_max
+    assert ad.fallback == "heuristic"
+
+
+def test_pickled_policy_carries_no_http_client(tmp_path):
+    from uavlae.llm import LLMAdvisor, make_llm_config
+
+    env, td = _env_rows()
+    llm = LLMAdvisor(make_llm_config("local", cache_mode="off"), base_url="http://127.0.0.1:9/v1")
+    pol = OverridePolicy(const_actor(), LLMAdvisorAdapter(llm, env.cfg), fallback=None)
+    llm._client = object()  # as if a client were open
+    blob = pickle.dumps(pol)
+    back = pickle.loads(blob)
+    assert back.advisor.llm._client is None and back.fallback == "end_episode"
+    assert back.advisor.llm.base_url_or_none == "http://127.0.0.1:9/v1"
+    llm._client = None
+    llm.close()
+
+
+def test_heuristic_advisor_on_env_rows():
+    from uavlae.policies.heuristic import HeuristicPolicy
+
+    env, td = _env_rows()
+    h = HeuristicPolicy(env.cfg)
+    adv = HeuristicAdvisor(h)
+    out = OverridePolicy(const_actor(), adv, mode="always")(td.clone())
+    assert out["action_source"].tolist() == [HEURISTIC] * 3
+    torch.testing.assert_close(out["action"], h.act(td["state"]))
+    assert out["action"].abs().max() <= 1
