@@ -201,7 +201,7 @@ class UAVCollector:
         dicts, loadable with ``torch.load(weights_only=True)``): frame counters, the env's RNG
         and scenario pool, the current tensordict, the warm-up generator, the episode tracker
         and the override policy's trigger generator and counters."""
-        env = self.env
+        env = getattr(self.env, "base_env", self.env)  # a TransformedEnv keeps its RNG in the base
         pool = getattr(env, "_pool", None)
         tr = self.tracker
         out: dict[str, Any] = {
@@ -224,7 +224,7 @@ class UAVCollector:
         return out
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        env = self.env
+        env = getattr(self.env, "base_env", self.env)
         self.frames = int(state["frames"])
         self.batches = int(state.get("batches", 0))
         self.generator.set_state(state["generator"])
@@ -235,7 +235,7 @@ class UAVCollector:
             env._pool = None if pool is None else TensorDict(pool, batch_size=state["env_pool_batch"], device=env.device)
             env._pool_pos = int(state.get("env_pool_pos", 0))
         td = state.get("td")
-        self._td = None if td is None else TensorDict(td, batch_size=env.batch_size, device=env.device)
+        self._td = None if td is None else TensorDict(td, batch_size=self.env.batch_size, device=self.env.device)
         tr = state["tracker"]
         self.tracker._acc = {k: v.clone().to(self.tracker.device) for k, v in tr["acc"].items()}
         self.tracker.episodes_per_row = tr["episodes_per_row"].clone().to(self.tracker.device)

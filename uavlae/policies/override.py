@@ -34,6 +34,11 @@ entries) and ``rows`` their indices in the batch. An advisor may expose ``source
 configured fallback, used when the policy's ``fallback`` is None), ``snapshot()`` (counters)
 and ``close()``.
 
+Only ``"action"`` is overridden: an actor's other outputs (``"loc"``, ``"scale"``,
+``"action_log_prob"``) stay the actor's, so an on-policy learner must not be fed overridden
+rows as its own samples (the paper overrides SAC, an off-policy learner; filter on
+``action_source`` otherwise).
+
 Evaluation and deployment use the actor alone (SPEC §8): set ``policy.deterministic = True``
 (or use ``with policy.actor_only():``); the override is then off and the actor runs under
 ``ExplorationType.DETERMINISTIC``. The advisor is a plain attribute, never a submodule, so
