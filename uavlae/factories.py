@@ -133,6 +133,7 @@ class RunConfig(_Strict):
     run_dir: str
     resume: str | None
     checkpoint: str | None
+    out: str | None
 
 
 def make_trainer_config(cfg: Any) -> TrainerConfig:

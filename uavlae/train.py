@@ -166,7 +166,9 @@ def _train(
         frames_per_batch=tr.frames_per_batch,
         total_frames=tr.total_frames,
         init_random_frames=tr.init_random_frames if off_policy else 0,
-        keep_keys=TRANSITION_KEYS,
+        # not "loc"/"scale": the random warm-up does not write them, and a batch that straddles
+        # init_random_frames would then stack steps with different keys
+        keep_keys=[k for k in TRANSITION_KEYS if k not in ("loc", "scale")],
         seed=int(cfg.seed),
     )
     replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None
