@@ -1,0 +1,87 @@
+"""Every `+exp` composes and validates; struct mode and the pydantic models reject bad keys."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from uavlae.factories import CONF_DIR, validate_config
+
+EXPS = sorted(p.stem for p in (CONF_DIR / "exp").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module")
+def hydra_ctx():
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        yield
+
+
+def _compose(*overrides: str):
+    return compose("config", overrides=list(overrides))
+
+
+def test_all_paper_exps_exist():
+    assert set(EXPS) >= {"sac_llm", "sac_llm_fp", "sac_heuristic", "sac", "ppo", "ddpg", "cpo", "heuristic", "llm"}
+
+
+@pytest.mark.parametrize("exp", EXPS)
+def test_exp_composes_and_validates(hydra_ctx, exp):
+    cfg = _compose(f"+exp={exp}")
+    assert OmegaConf.is_struct(cfg)
+    assert cfg.name == exp
+    validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+    if exp in ("heuristic", "llm"):
+        assert cfg.controller == exp and "algo" not in cfg
+    else:
+        assert cfg.controller == "learner"
+    expected_advisor = {"sac_llm": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "llm": "llm"}
+    assert cfg.advisor.kind == expected_advisor.get(exp, "none")
+    # the resolved config never holds an API key, only the variable's name
+    assert set(cfg.llm.keys()) & {"api_key"} == set()
+
+
+def test_paper_values(hydra_ctx):
+    cfg = _compose("+exp=sac_llm")
+    assert cfg.advisor.mode == "proximity" and cfg.advisor.d_th == 15.0
+    assert cfg.algo.actor_lr == 1e-4 and cfg.algo.critic_lr == 3e-4 and list(cfg.algo.hidden) == [64, 64]
+    assert _compose("+exp=sac_llm_fp").advisor.fp == 0.3
+    assert _compose("+exp=ppo").algo.clip_epsilon == 0.2
+    assert _compose("+exp=cpo").algo.cost_limit == 0.05
+    # the trainer reads the algo's numbers unless told otherwise
+    cfg = _compose("+exp=sac", "algo.utd_ratio=2.0")
+    assert cfg.trainer.utd_ratio == 2.0 and cfg.trainer.batch_size == 256
+    assert _compose("+exp=ppo").trainer.frames_per_batch == 2048
+
+
+@pytest.mark.parametrize("override", ["trainer.no_such_key=1", "env.area.no_such=1", "advisor.nope=1", "nope=1"])
+def test_unknown_keys_error(hydra_ctx, override):
+    with pytest.raises(ConfigCompositionException):
+        _compose("+exp=sac", override)
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("+trainer.no_such_key=1", "trainer.no_such_key"),
+        ("+algo.no_such_key=1", "algo.no_such_key"),
+        ("+env.no_such_key=1", "env.no_such_key"),
+        ("trainer.env_batch_size=0", "trainer.env_batch_size"),
+        ("trainer.frames_per_batch=100", "frames_per_batch"),
+        ("advisor.fp=1.5", "advisor.fp"),
+        ("algo.gamma=2.0", "algo.gamma"),
+        ("env.motion.v_max=-1.0", "env.motion"),
+        ("logger.wandb.mode=sometimes", "logger.wandb.mode"),
+    ],
+)
+def test_bad_values_are_rejected_by_name(hydra_ctx, override, field):
+    cfg = _compose("+exp=sac", override)
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+
+
+def test_advisor_on_an_on_policy_learner_is_rejected(hydra_ctx):
+    cfg = _compose("+exp=ppo", "advisor=heuristic_override")
+    with pytest.raises(ValueError, match="on-policy"):
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
