@@ -37,6 +37,8 @@ def machine() -> dict:
         "logical_cores": os.cpu_count(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
+        # other processes compete for the cores: absolute figures only compare within one run
+        "load_average_1_5_15": list(os.getloadavg()),
     }
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)
