@@ -85,3 +85,16 @@ def test_advisor_on_an_on_policy_learner_is_rejected(hydra_ctx):
     cfg = _compose("+exp=ppo", "advisor=heuristic_override")
     with pytest.raises(ValueError, match="on-policy"):
         validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+
+
+def test_resolved_config_never_holds_the_api_key(hydra_ctx, monkeypatch):
+    from uavlae.factories import redact_secrets
+
+    monkeypatch.setenv("DEEPSEEK_API_KEY", "sk-test-secret-123")
+    cfg = _compose("+exp=sac_llm", "llm=deepseek")
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    assert resolved["llm"]["api_key_env"] == "DEEPSEEK_API_KEY"
+    assert "sk-test-secret-123" not in repr(resolved)
+    # a key pasted into any field by mistake is not written to the run's files
+    resolved["llm"]["model"] = "model-sk-test-secret-123"
+    assert "sk-test-secret-123" not in repr(redact_secrets(resolved))
