@@ -38,13 +38,18 @@ NestedKey = str | tuple[str, ...]
 # What a learner needs of a transition; the bulky static ("state", ...) entries are left out.
 # Missing keys are skipped, so this serves SAC/DDPG (replay) and PPO/CPO (log-probs) alike.
 TRANSITION_KEYS: tuple[NestedKey, ...] = (
-    "observation", "action", "action_source", "action_log_prob", "loc", "scale",
+    "observation", "action", "action_source", "action_log_prob",
     "done", "terminated", "truncated",
     ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done"),
     ("next", "terminated"), ("next", "truncated"), ("next", "events"), ("next", "reward_terms"),
 )
 
 __all__ = ["TRANSITION_KEYS", "UAVCollector", "make_replay_buffer"]
+
+
+def _has_extra_state(module: Any) -> bool:
+    """Every nn.Module has ``get_extra_state``; only overriding it means there is state to keep."""
+    return type(module).get_extra_state is not torch.nn.Module.get_extra_state
 
 
 class _UniformRandom(TensorDictModuleBase):
@@ -202,16 +207,12 @@ class UAVCollector:
         and scenario pool, the current tensordict, the warm-up generator, the episode tracker
         and the override policy's trigger generator and counters."""
         env = getattr(self.env, "base_env", self.env)  # a TransformedEnv keeps its RNG in the base
-        pool = getattr(env, "_pool", None)
         tr = self.tracker
         out: dict[str, Any] = {
             "frames": self.frames,
             "batches": self.batches,
             "generator": self.generator.get_state(),
-            "env_rng": env.rng.get_state() if getattr(env, "rng", None) is not None else None,
-            "env_pool": None if pool is None else pool.to_dict(),
-            "env_pool_batch": None if pool is None else list(pool.batch_size),
-            "env_pool_pos": getattr(env, "_pool_pos", 0),
+            "env": env.sampler_state() if hasattr(env, "sampler_state") else None,
             "td": None if self._td is None else self._td.to_dict(),
             "tracker": {
                 "acc": {k: v.clone() for k, v in tr._acc.items()},
@@ -219,7 +220,7 @@ class UAVCollector:
                 "records": tr.records(),
             },
         }
-        if hasattr(self.policy, "get_extra_state"):
+        if _has_extra_state(self.policy):
             out["policy_extra"] = self.policy.get_extra_state()
         return out
 
@@ -228,12 +229,8 @@ class UAVCollector:
         self.frames = int(state["frames"])
         self.batches = int(state.get("batches", 0))
         self.generator.set_state(state["generator"])
-        if state.get("env_rng") is not None:
-            env.rng.set_state(state["env_rng"])
-        if hasattr(env, "_pool"):
-            pool = state.get("env_pool")
-            env._pool = None if pool is None else TensorDict(pool, batch_size=state["env_pool_batch"], device=env.device)
-            env._pool_pos = int(state.get("env_pool_pos", 0))
+        if state.get("env") is not None:
+            env.load_sampler_state(state["env"])
         td = state.get("td")
         self._td = None if td is None else TensorDict(td, batch_size=self.env.batch_size, device=self.env.device)
         tr = state["tracker"]
@@ -242,7 +239,7 @@ class UAVCollector:
         recs = tr["records"]
         n = int(next(iter(recs.values())).numel()) if recs else 0
         self.tracker._chunks = [dict(recs)] if n else []
-        if "policy_extra" in state and hasattr(self.policy, "set_extra_state"):
+        if "policy_extra" in state and _has_extra_state(self.policy):
             self.policy.set_extra_state(state["policy_extra"])
 
     def shutdown(self) -> None:

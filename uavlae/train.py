@@ -168,7 +168,7 @@ def _train(
         init_random_frames=tr.init_random_frames if off_policy else 0,
         # not "loc"/"scale": the random warm-up does not write them, and a batch that straddles
         # init_random_frames would then stack steps with different keys
-        keep_keys=[k for k in TRANSITION_KEYS if k not in ("loc", "scale")],
+        keep_keys=TRANSITION_KEYS,
         seed=int(cfg.seed),
     )
     replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None

@@ -152,6 +152,23 @@ class UAVEnv(EnvBase):
         self.rng = rng
         self._pool, self._pool_pos = None, 0  # a new seed starts a new scenario stream
 
+    def sampler_state(self) -> dict[str, Any]:
+        """The env's random state for an exact resume: its generator and scenario pool (plain
+        tensors and dicts, loadable with ``torch.load(weights_only=True)``)."""
+        pool = self._pool
+        return {
+            "rng": self.rng.get_state(),
+            "pool": None if pool is None else pool.to_dict(),
+            "pool_batch": None if pool is None else list(pool.batch_size),
+            "pool_pos": self._pool_pos,
+        }
+
+    def load_sampler_state(self, state: dict[str, Any]) -> None:
+        self.rng.set_state(state["rng"])
+        pool = state["pool"]
+        self._pool = None if pool is None else TensorDict(pool, batch_size=state["pool_batch"], device=self.device)
+        self._pool_pos = int(state["pool_pos"])
+
     # ------------------------------------------------------------------ data in / out
     def _scenarios_for(self, rows: torch.Tensor | None) -> tuple[TensorDictBase, torch.Tensor | None]:
         """The scenarios to reset to, and for each of the B rows the index of its scenario
