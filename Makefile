@@ -9,7 +9,11 @@ export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 export WANDB_MODE ?= offline
 
-.PHONY: setup run test test-slow bench bench-env bench-llm clean
+# The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run to a few
+# minutes; `make run RUN_ARGS=` trains with the full budget of conf/trainer/default.yaml.
+RUN_ARGS ?= trainer.total_frames=1024 trainer.eval_episodes=8
+
+.PHONY: setup run demo test test-slow bench bench-env bench-llm bench-sac clean
 
 setup: $(STAMP)
 
@@ -25,6 +29,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
+	$(BIN)/python -m uavlae.train +exp=sac_llm $(RUN_ARGS)
+
+demo: $(STAMP)
 	$(BIN)/python -m uavlae.demo
 
 test: $(STAMP)
@@ -33,7 +40,10 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow --timeout=3600
 
-bench: bench-env bench-llm
+bench: bench-env bench-llm bench-sac
+
+bench-sac: $(STAMP)
+	$(BIN)/python benchmarks/sac_update_speed.py
 
 bench-env: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py
