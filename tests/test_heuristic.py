@@ -26,7 +26,7 @@ def test_config_yaml_mirrors_model_and_validates():
     path = Path(__file__).resolve().parents[1] / "conf" / "advisor" / "heuristic.yaml"
     data = yaml.safe_load(path.read_text())
     assert make_heuristic_config(data) == HeuristicConfig()
-    with pytest.raises(ValueError, match="advisor.grid_cell"):
+    with pytest.raises(ValueError, match="heuristic.grid_cell"):
         make_heuristic_config(grid_cell=5.0)
     with pytest.raises(ValueError, match="tight_clearance"):
         make_heuristic_config(tight_clearance=9.0)

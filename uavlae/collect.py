@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from uavlae.envs.metrics import EpisodeTracker, aggregate, concat_records
+from uavlae.envs.metrics import EpisodeTracker, aggregate
 from uavlae.policies.override import POLICY
 
 NestedKey = str | tuple[str, ...]

@@ -6,8 +6,10 @@ from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 import torch
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict
 from tensordict import TensorDictBase
+
+from uavlae.validation import parse_model
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -23,31 +25,8 @@ def parse_config(model: type[C], cfg: Any = None, **overrides: Any) -> C:
 
     Raises ``ValueError`` naming every offending field with the value it got.
     """
-    if isinstance(cfg, model) and not overrides:
-        return cfg
-    if cfg is None:
-        data: dict[str, Any] = {}
-    elif isinstance(cfg, BaseModel):
-        data = cfg.model_dump()
-    else:
-        try:
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(cfg, DictConfig):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover
-            pass
-        data = dict(cfg)
-    data.update(overrides)
-    try:
-        return model.model_validate(data)
-    except ValidationError as e:
-        name = data.get("name", model.__name__)
-        lines = [
-            f"algo.{'.'.join(str(p) for p in err['loc']) or name}: {err['msg']} (got {err.get('input')!r})"
-            for err in e.errors()
-        ]
-        raise ValueError(f"invalid {name} config:\n  " + "\n  ".join(lines)) from None
+    name = cfg.get("name", model.__name__) if hasattr(cfg, "get") else model.__name__
+    return parse_model(model, cfg, prefix="algo", title=str(name), **overrides)
 
 
 def adam(params: Iterable[torch.Tensor], lr: float) -> torch.optim.Adam:

@@ -45,7 +45,7 @@ from torchrl.objectives.value import GAE
 
 from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
 from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
-from uavlae.policies.networks import Activation, make_ppo_actor, make_value_critic
+from uavlae.policies.networks import make_ppo_actor, make_value_critic
 
 CPO_TRAIN_KEYS = (*PPO_TRAIN_KEYS, "cost_advantage", "cost_value_target", "lagrangian_advantage")
 

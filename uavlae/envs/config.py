@@ -10,7 +10,9 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from uavlae.validation import parse_model
 
 Rect = tuple[float, float, float, float]  # (x0, y0, x1, y1): south-west and north-east corners
 
@@ -245,28 +247,4 @@ def make_env_config(cfg: Any = None, **overrides: Any) -> EnvConfig:
 
     Raises ``ValueError`` with the offending field path and message on bad input.
     """
-    if isinstance(cfg, EnvConfig) and not overrides:
-        return cfg
-    data: dict[str, Any]
-    if cfg is None:
-        data = {}
-    elif isinstance(cfg, EnvConfig):
-        data = cfg.model_dump()
-    else:
-        try:  # OmegaConf DictConfig
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(cfg, DictConfig):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover
-            pass
-        data = dict(cfg)
-    data.update(overrides)
-    try:
-        return EnvConfig.model_validate(data)
-    except ValidationError as e:
-        lines = []
-        for err in e.errors():
-            loc = ".".join(str(p) for p in err["loc"]) or "env"
-            lines.append(f"env.{loc}: {err['msg']} (got {err.get('input')!r})")
-        raise ValueError("invalid environment config:\n  " + "\n  ".join(lines)) from None
+    return parse_model(EnvConfig, cfg, prefix="env", title="environment", **overrides)

@@ -91,7 +91,7 @@ class UAVEnv(EnvBase):
         self._fixed = td.to(self.device)
 
     def _make_specs(self) -> None:
-        b, c = self.batch_size, self.cfg
+        b = self.batch_size
         B = b[0]
         g, k = self.layout.n_ge, self.layout.n_ou
         n_nfz, n_rz, n_bz = self.layout.n_zone

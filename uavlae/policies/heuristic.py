@@ -34,13 +34,14 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.validation import parse_model
 
 # raw state entries the heuristic reads (docs/env_contract.md)
 STATE_IN_KEYS = (
@@ -95,30 +96,7 @@ class HeuristicConfig(BaseModel):
 
 def make_heuristic_config(cfg: Any = None, **overrides: Any) -> HeuristicConfig:
     """Build a :class:`HeuristicConfig` from a mapping / OmegaConf node; ``ValueError`` names the field."""
-    if isinstance(cfg, HeuristicConfig) and not overrides:
-        return cfg
-    if cfg is None:
-        data: dict[str, Any] = {}
-    elif isinstance(cfg, HeuristicConfig):
-        data = cfg.model_dump()
-    else:
-        try:  # OmegaConf DictConfig
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(cfg, DictConfig):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover
-            pass
-        data = dict(cfg)
-    data.update(overrides)
-    try:
-        return HeuristicConfig.model_validate(data)
-    except ValidationError as e:
-        lines = [
-            f"advisor.{'.'.join(str(p) for p in err['loc']) or 'heuristic'}: {err['msg']} (got {err.get('input')!r})"
-            for err in e.errors()
-        ]
-        raise ValueError("invalid heuristic config:\n  " + "\n  ".join(lines)) from None
+    return parse_model(HeuristicConfig, cfg, prefix="heuristic", title="heuristic", **overrides)
 
 
 def _inflate(rects: Tensor, margin: Tensor) -> Tensor:

@@ -1,0 +1,42 @@
+"""One way to turn user config (None, a mapping, an OmegaConf node or the model itself) into a
+validated pydantic model, with an error that names every offending field (STYLE.md rule 6)."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ValidationError
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def parse_model(model: type[M], cfg: Any, *, prefix: str, title: str, **overrides: Any) -> M:
+    """Validate ``cfg`` (plus ``overrides``) into ``model``.
+
+    Raises ``ValueError("invalid <title> config: ...")`` with one line per error, each naming the
+    field as ``<prefix>.<path>`` and the value it got; nothing half-built is returned.
+    """
+    if isinstance(cfg, model) and not overrides:
+        return cfg
+    if cfg is None:
+        data: dict[str, Any] = {}
+    elif isinstance(cfg, BaseModel):
+        data = cfg.model_dump()
+    else:
+        try:
+            from omegaconf import DictConfig, OmegaConf
+
+            if isinstance(cfg, DictConfig):
+                cfg = OmegaConf.to_container(cfg, resolve=True)
+        except ImportError:  # pragma: no cover
+            pass
+        data = dict(cfg)
+    data.update(overrides)
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        lines = [
+            f"{prefix}.{'.'.join(str(p) for p in err['loc']) or prefix}: {err['msg']} (got {err.get('input')!r})"
+            for err in e.errors()
+        ]
+        raise ValueError(f"invalid {title} config:\n  " + "\n  ".join(lines)) from None
