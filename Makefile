@@ -53,3 +53,19 @@ bench-llm: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun
+
+# The paper's table (issue 4): every method at equal training frames, same seeds, one fixed
+# evaluation set -> results/paper_table.{csv,md,json}. FRAMES / SEEDS / LLM_CAP_MIN to change.
+.PHONY: paper-table
+FRAMES ?= 12288
+SEEDS ?= 0
+LLM_CAP_MIN ?= 6
+paper-table: $(STAMP)
+	$(BIN)/python experiments/paper_table.py --frames $(FRAMES) --seeds $(SEEDS) --cap-minutes $(LLM_CAP_MIN)
+
+# Time to target, our SAC vs Stable-Baselines3's (the `bench` extra) -> benchmarks/time_to_target.json
+.PHONY: bench-ttt
+TTT_CAP_MIN ?= 15
+bench-ttt: $(STAMP)
+	$(BIN)/pip install -q -e '.[bench]' torch==2.13.0  # the pin keeps the CPU build
+	$(BIN)/python benchmarks/time_to_target.py --cap-minutes $(TTT_CAP_MIN)
