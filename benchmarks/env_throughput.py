@@ -1,11 +1,14 @@
 """Env-steps per second: UAVEnv through the TorchRL API vs the gymnasium adapter, side by side.
 
-    python benchmarks/env_throughput.py [--batches 1 64 1024 4096] [--seconds 3] [--device cpu]
+    python benchmarks/env_throughput.py [--batches 1 64 1024 4096] [--seconds 3] [--device cpu] [--compile]
 
 Both paths run the same world (``world_step``). The TorchRL path is the loop a collector runs:
 ``step_and_maybe_reset`` with a policy's actions written into the tensordict, so partial resets
 (fresh scenarios for finished rows) are included. The reference steps one scenario at a time
-through ``UAVGymEnv`` with numpy actions. Writes ``benchmarks/env_throughput.json``.
+through ``UAVGymEnv`` with numpy actions. ``--compile`` adds, for each batch size, a row with
+``UAVEnv(compile_step=True)`` (the step through ``torch.compile``) measured right after the eager
+one in the same run; its one-off compile time (first step) is reported separately as
+``compile_seconds``. Writes ``benchmarks/env_throughput.json``.
 """
 
 from __future__ import annotations
@@ -50,18 +53,23 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def bench_torchrl(batch: int, seconds: float, device: str, seed: int = 0) -> dict:
+def bench_torchrl(batch: int, seconds: float, device: str, seed: int = 0, compile_step: bool = False) -> dict:
     from uavlae.envs import UAVEnv
 
-    env = UAVEnv(batch_size=[batch], device=device, seed=seed)
+    env = UAVEnv(batch_size=[batch], device=device, seed=seed, compile_step=compile_step)
     gen = torch.Generator(device=device).manual_seed(seed)
     td = env.reset()
     # the policy: uniform random actions drawn outside the timed region's env code
     n_pre = 64
     actions = torch.rand(n_pre, batch, 2, generator=gen, device=device) * 2 - 1
-    for i in range(5):  # warm-up (allocator, first resets)
+    compile_s = None
+    for i in range(5):  # warm-up (allocator, first resets; the compile happens in the first step)
+        t_first = time.perf_counter()
         td["action"] = actions[i % n_pre]
         _, td = env.step_and_maybe_reset(td)
+        if i == 0 and compile_step:
+            _sync(device)
+            compile_s = time.perf_counter() - t_first
     _sync(device)
     steps, t0 = 0, time.perf_counter()
     while True:
@@ -74,8 +82,11 @@ def bench_torchrl(batch: int, seconds: float, device: str, seed: int = 0) -> dic
                 break
     _sync(device)
     dt = time.perf_counter() - t0
-    return {"batch": batch, "calls": steps, "seconds": dt, "env_steps_per_s": steps * batch / dt,
-            "ms_per_call": 1e3 * dt / steps}
+    row = {"batch": batch, "compiled": compile_step, "calls": steps, "seconds": dt,
+           "env_steps_per_s": steps * batch / dt, "ms_per_call": 1e3 * dt / steps}
+    if compile_step:
+        row["compile_seconds"] = compile_s
+    return row
 
 
 def bench_gym(seconds: float, seed: int = 0) -> dict:
@@ -106,6 +117,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=int(os.environ.get("UAVLAE_NUM_THREADS", "1")))
+    ap.add_argument("--compile", action="store_true",
+                    help="also measure UAVEnv(compile_step=True) next to each eager row")
     ap.add_argument("--out", default=str(Path(__file__).with_name("env_throughput.json")))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -114,11 +127,14 @@ def main() -> None:
     print(f"gymnasium adapter, one scenario at a time: {gym['env_steps_per_s']:,.0f} env-steps/s")
     rows = []
     for b in args.batches:
-        r = bench_torchrl(b, args.seconds, args.device)
-        r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
-        rows.append(r)
-        print(f"UAVEnv B={b:>5} ({args.device}): {r['env_steps_per_s']:>12,.0f} env-steps/s  "
-              f"{r['ms_per_call']:7.2f} ms/call  x{r['ratio_vs_gym']:.1f} vs gym")
+        for compiled in (False, True) if args.compile else (False,):
+            r = bench_torchrl(b, args.seconds, args.device, compile_step=compiled)
+            r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
+            rows.append(r)
+            tag = "compiled" if compiled else "eager"
+            extra = f"  (one-off compile {r['compile_seconds']:.1f} s)" if compiled else ""
+            print(f"UAVEnv B={b:>5} ({args.device}, {tag:>8}): {r['env_steps_per_s']:>12,.0f} env-steps/s  "
+                  f"{r['ms_per_call']:7.2f} ms/call  x{r['ratio_vs_gym']:.1f} vs gym{extra}", flush=True)
     result = {"machine": machine(), "device": args.device, "threads": args.threads,
               "seconds_per_measurement": args.seconds, "gym": gym, "torchrl": rows,
               "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}

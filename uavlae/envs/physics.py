@@ -82,9 +82,16 @@ def propulsion_power(speed: Tensor, e: EnergyConfig) -> Tensor:
 
 
 @functools.lru_cache(maxsize=64)
-def _power_at(speed: float, e: EnergyConfig) -> float:
-    """P(V) for one constant speed, in float64 (no tensor ops on the hot path)."""
+def _power_at_cached(speed: float, e: EnergyConfig) -> float:
     return float(propulsion_power(torch.tensor(speed, dtype=torch.float64), e))
+
+
+@torch.compiler.assume_constant_result
+def _power_at(speed: float, e: EnergyConfig) -> float:
+    """P(V) for one constant speed, in float64 (no tensor ops on the hot path). Under
+    ``torch.compile`` it is evaluated once at trace time and baked in as a constant (the config
+    is fixed per compiled env), instead of a graph break on ``float(tensor)``."""
+    return _power_at_cached(speed, e)
 
 
 def slot_energy(speed: Tensor, e: EnergyConfig, m: MotionConfig) -> Tensor:
@@ -289,6 +296,12 @@ def _retry_headings(
     return torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
 
 
+# On CPU the retries stay out of a torch.compile graph (one deliberate graph break) so that they
+# run the sparse form on the few blocked OUs: the dense form tests every OU x heading x rectangle
+# and costs a compiled CPU step more than everything else together.
+_retry_headings_outside_graph = torch.compiler.disable(_retry_headings)
+
+
 def ou_noise(
     shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig, generator: torch.Generator,
     device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
@@ -327,7 +340,8 @@ def ou_step(
     ok = _ou_move_ok(pos, v, blocked, blocked_mask, x_size, y_size, m.t_fly)
 
     # a blocked move keeps its speed and tries new headings, the first valid one wins
-    v = torch.where(ok.unsqueeze(-1), v, _retry_headings(pos, v, ok | ~mask, retry_heading, blocked, blocked_mask, x_size, y_size, m.t_fly))
+    retry = _retry_headings_outside_graph if pos.device.type == "cpu" else _retry_headings
+    v = torch.where(ok.unsqueeze(-1), v, retry(pos, v, ok | ~mask, retry_heading, blocked, blocked_mask, x_size, y_size, m.t_fly))
 
     present = mask.unsqueeze(-1)
     new_pos = torch.where(present, pos + v * m.t_fly, pos)
