@@ -58,7 +58,7 @@ clean:
 # evaluation set -> results/paper_table.{csv,md,json}. FRAMES / SEEDS / LLM_CAP_MIN to change.
 .PHONY: paper-table
 FRAMES ?= 12288
-SEEDS ?= 0
+SEEDS ?= 0 1
 LLM_CAP_MIN ?= 6
 paper-table: $(STAMP)
 	$(BIN)/python experiments/paper_table.py --frames $(FRAMES) --seeds $(SEEDS) --cap-minutes $(LLM_CAP_MIN)
