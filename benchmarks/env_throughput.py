@@ -16,36 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import torch
 
+from uavlae.machine import describe_machine
 
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    info = {
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "cpu": cpu,
-        "logical_cores": os.cpu_count(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        # other processes compete for the cores: absolute figures only compare within one run
-        "load_average_1_5_15": list(os.getloadavg()),
-    }
-    if torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(0)
-    return info
 
 
 def _sync(device: str) -> None:
@@ -135,7 +112,7 @@ def main() -> None:
             extra = f"  (one-off compile {r['compile_seconds']:.1f} s)" if compiled else ""
             print(f"UAVEnv B={b:>5} ({args.device}, {tag:>8}): {r['env_steps_per_s']:>12,.0f} env-steps/s  "
                   f"{r['ms_per_call']:7.2f} ms/call  x{r['ratio_vs_gym']:.1f} vs gym{extra}", flush=True)
-    result = {"machine": machine(), "device": args.device, "threads": args.threads,
+    result = {"machine": describe_machine(), "device": args.device, "threads": args.threads,
               "seconds_per_measurement": args.seconds, "gym": gym, "torchrl": rows,
               "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     out = Path(args.out)

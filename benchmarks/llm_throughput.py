@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -24,23 +22,8 @@ sys.path.insert(0, str(ROOT))
 
 from uavlae.llm import LLMAdvisor, WorldLimits, example_states, make_llm_config  # noqa: E402
 from uavlae.llm.server import local_server  # noqa: E402
+from uavlae.machine import describe_machine  # noqa: E402
 
-
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import torch
-    import xllamacpp
-
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpu_model": cpu,
-            "cpu_count": os.cpu_count(), "torch": torch.__version__, "xllamacpp": xllamacpp.__version__,
-            "load_avg_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None}
 
 
 def main() -> None:
@@ -55,7 +38,9 @@ def main() -> None:
     # SPEC defaults; the benchmark states are synthetic, only their size matters here
     lim = WorldLimits(x_size=500.0, y_size=500.0, v_max=10.0, v_limit=5.0, perception_radius=20.0,
                       landing=(475.0, 0.0, 500.0, 25.0), e_limit=8e5)
-    mach = machine()
+    import xllamacpp
+
+    mach = describe_machine(xllamacpp=xllamacpp.__version__)
     rows = []
     with tempfile.TemporaryDirectory() as tmp, local_server(n_threads=args.threads,
                                                             n_parallel=args.parallel) as srv:

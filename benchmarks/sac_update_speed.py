@@ -23,7 +23,6 @@ import copy
 import json
 import math
 import os
-import platform
 import statistics
 import time
 import traceback
@@ -39,32 +38,10 @@ from torch import nn  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
 from uavlae.algos.sac import make_sac  # noqa: E402
+from uavlae.machine import describe_machine  # noqa: E402
 
 TARGET_UPS = 300.0
 
-
-def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import tensordict
-    import torchrl
-
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu_model": cpu,
-        "logical_cores": os.cpu_count(),
-        "torch": torch.__version__,
-        "torchrl": torchrl.__version__,
-        "tensordict": tensordict.__version__,
-        "torch_num_threads": torch.get_num_threads(),
-    }
 
 
 def replay_batch(n: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -222,7 +199,7 @@ def main() -> None:
         "target_updates_per_s": TARGET_UPS,
         "meets_target_median": {k: v >= TARGET_UPS for k, v in median.items()},
         "compile": compiled_info,
-        "machine": machine(),
+        "machine": describe_machine(),
         "load_average_1_5_15": {"before": [round(x, 2) for x in load_before], "after": [round(x, 2) for x in os.getloadavg()]},
         "measured_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }

@@ -25,32 +25,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from uavlae.machine import describe_machine  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = {"DCR": (">=", 0.9), "CR": ("<=", 0.1), "SLR": (">=", 0.9)}
 SAC_HP = {"actor_lr": 1e-4, "critic_lr": 3e-4, "alpha_lr": 3e-4, "batch_size": 256, "gamma": 0.99, "tau": 0.005,
           "hidden": [64, 64], "init_random_frames": 5000, "utd_ratio": 1.0, "env_batch": 16}
 
-
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"platform": platform.platform(), "python": sys.version.split()[0], "cpu": cpu,
-            "logical_cores": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()]}
 
 
 def meets(agg: dict) -> bool:
@@ -259,7 +246,7 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(tempfile.mkdtemp(prefix="ttt_"))
     eval_set = work / "eval_set.json"
     load_or_make_eval_set(make_env_config(None), eval_set, a.eval_episodes, a.eval_seed)
-    result = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine(),
+    result = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
               "command": "python benchmarks/time_to_target.py " + " ".join(sys.argv[1:] if argv is None else argv),
               "target": {k: f"{op} {v}" for k, (op, v) in TARGET.items()}, "hyperparameters": SAC_HP,
               "eval_every_frames": a.eval_every, "eval_episodes": a.eval_episodes, "eval_seed": a.eval_seed,

@@ -31,7 +31,6 @@ import csv
 import json
 import math
 import os
-import platform
 import shlex
 import signal
 import subprocess
@@ -44,31 +43,12 @@ import torch
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.evaluate import load_or_make_eval_set
+from uavlae.machine import describe_machine  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("heuristic", "sac", "sac_heuristic", "sac_llm", "ppo", "ddpg", "cpo")
 CONTROLLERS = ("heuristic", "llm")  # evaluation-only: no training frames
 
-
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "cpu": cpu,
-        "logical_cores": os.cpu_count(),
-        "torch": torch.__version__,
-        "torch_threads": 1,
-        # the cores are shared with other jobs: wall times only compare within one run
-        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
-    }
 
 
 def _code_version(run_dir: Path) -> dict:
@@ -273,7 +253,7 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(1)
     meta = {"command": "python experiments/paper_table.py " + shlex.join(sys.argv[1:] if argv is None else argv),
-            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine()}
+            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(torch_threads=1)}
     eval_set = Path(a.out_dir).resolve() / "paper_table_eval_set.json"
     env_cfg = make_env_config(None)
     load_or_make_eval_set(env_cfg, eval_set, a.eval_episodes, a.eval_seed)  # sampled once, then reused
