@@ -276,6 +276,8 @@ def _train(
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    # one INFO line per HTTP request buries the progress bar; the LLM counters are in the logs
+    logging.getLogger("httpx").setLevel(logging.WARNING)
     final = run(cfg)
     print(json.dumps(final, indent=1))
 
