@@ -46,7 +46,7 @@ bench-sac: $(STAMP)
 	$(BIN)/python benchmarks/sac_update_speed.py
 
 bench-env: $(STAMP)
-	$(BIN)/python benchmarks/env_throughput.py
+	$(BIN)/python benchmarks/env_throughput.py --compile
 
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
