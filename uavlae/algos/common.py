@@ -69,3 +69,27 @@ def to_floats(values: Mapping[str, Any] | TensorDictBase, keys: Iterable[str] | 
         elif isinstance(v, (int, float)):
             out[str(k)] = float(v)
     return out
+
+
+def parts_state_dict(parts: Mapping[str, Any], num_updates: int) -> dict[str, Any]:
+    """A learner's checkpoint: ``state_dict()`` of each named part (a mapping of parts, e.g. the
+    optimisers, becomes a mapping of state dicts) plus the update counter."""
+    out: dict[str, Any] = {
+        k: {n: o.state_dict() for n, o in v.items()} if isinstance(v, Mapping) else v.state_dict()
+        for k, v in parts.items()
+    }
+    out["num_updates"] = num_updates
+    return out
+
+
+def load_parts_state_dict(parts: Mapping[str, Any], state: Mapping[str, Any]) -> int:
+    """Restore what :func:`parts_state_dict` wrote, in place; returns the update counter.
+    ``nn.Module.load_state_dict`` copies in place, so optimisers and target updaters keep
+    pointing at the restored tensors."""
+    for k, v in parts.items():
+        if isinstance(v, Mapping):
+            for n, o in v.items():
+                o.load_state_dict(state[k][n])
+        else:
+            v.load_state_dict(state[k])
+    return int(state["num_updates"])

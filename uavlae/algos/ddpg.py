@@ -22,7 +22,15 @@ from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss, SoftUpdate
 
-from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import (
+    StrictConfig,
+    adam,
+    load_parts_state_dict,
+    optimiser_step,
+    parse_config,
+    parts_state_dict,
+    to_floats,
+)
 from uavlae.policies.networks import Activation, action_bounds, make_ddpg_actor, make_ddpg_exploration, make_q_critic
 
 
@@ -89,23 +97,15 @@ class DDPG:
         logs["num_updates"] = float(self.num_updates)
         return logs
 
+    def _parts(self) -> dict[str, Any]:
+        return {"loss": self.loss, "optimisers": self.optimisers, "target_updater": self.target_updater, "noise": self.noise}
+
     def state_dict(self) -> dict[str, Any]:
         """Actor, critic, both targets (in ``loss``), optimisers, the annealed noise, counters."""
-        return {
-            "loss": self.loss.state_dict(),
-            "optimisers": {k: o.state_dict() for k, o in self.optimisers.items()},
-            "target_updater": self.target_updater.state_dict(),
-            "noise": self.noise.state_dict(),
-            "num_updates": self.num_updates,
-        }
+        return parts_state_dict(self._parts(), self.num_updates)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
-        for k, o in self.optimisers.items():
-            o.load_state_dict(state["optimisers"][k])
-        self.target_updater.load_state_dict(state["target_updater"])
-        self.noise.load_state_dict(state["noise"])
-        self.num_updates = int(state["num_updates"])
+        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_ddpg(cfg: DDPGConfig | Any, obs_dim: int, action_spec: TensorSpec) -> DDPG:

@@ -24,7 +24,15 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import (
+    StrictConfig,
+    adam,
+    load_parts_state_dict,
+    optimiser_step,
+    parse_config,
+    parts_state_dict,
+    to_floats,
+)
 from uavlae.policies.networks import Activation, make_ppo_actor, make_value_critic
 
 # What a PPO minibatch needs once GAE has run; the rest of the rollout is dropped before shuffling.
@@ -121,19 +129,15 @@ class PPO:
         logs["num_updates"] = float(self.num_updates)
         return logs
 
+    def _parts(self) -> dict[str, Any]:
+        return {"loss": self.loss, "optimisers": self.optimisers}
+
     def state_dict(self) -> dict[str, Any]:
         """Actor and critic (in ``loss``), optimisers, counters. PPO has no target nets."""
-        return {
-            "loss": self.loss.state_dict(),
-            "optimisers": {k: o.state_dict() for k, o in self.optimisers.items()},
-            "num_updates": self.num_updates,
-        }
+        return parts_state_dict(self._parts(), self.num_updates)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
-        for k, o in self.optimisers.items():
-            o.load_state_dict(state["optimisers"][k])
-        self.num_updates = int(state["num_updates"])
+        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_clip_ppo_loss(

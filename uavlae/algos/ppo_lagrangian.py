@@ -43,7 +43,15 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import (
+    StrictConfig,
+    adam,
+    load_parts_state_dict,
+    optimiser_step,
+    parse_config,
+    parts_state_dict,
+    to_floats,
+)
 from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
 from uavlae.policies.networks import make_ppo_actor, make_value_critic
 
@@ -214,23 +222,15 @@ class PPOLagrangian:
         logs["num_updates"] = float(self.num_updates)
         return logs
 
+    def _parts(self) -> dict[str, Any]:
+        return {"loss": self.loss, "cost_critic": self.cost_critic, "optimisers": self.optimisers, "lagrange": self.lagrange}
+
     def state_dict(self) -> dict[str, Any]:
         """Actor and reward critic (in ``loss``), cost critic, optimisers, the multiplier."""
-        return {
-            "loss": self.loss.state_dict(),
-            "cost_critic": self.cost_critic.state_dict(),
-            "optimisers": {k: o.state_dict() for k, o in self.optimisers.items()},
-            "lagrange": self.lagrange.state_dict(),
-            "num_updates": self.num_updates,
-        }
+        return parts_state_dict(self._parts(), self.num_updates)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
-        self.cost_critic.load_state_dict(state["cost_critic"])
-        for k, o in self.optimisers.items():
-            o.load_state_dict(state["optimisers"][k])
-        self.lagrange.load_state_dict(state["lagrange"])
-        self.num_updates = int(state["num_updates"])
+        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_ppo_lagrangian(cfg: CPOConfig | Any, obs_dim: int, action_spec: TensorSpec) -> PPOLagrangian:

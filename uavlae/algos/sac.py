@@ -20,7 +20,15 @@ from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
+from uavlae.algos.common import (
+    StrictConfig,
+    adam,
+    load_parts_state_dict,
+    optimiser_step,
+    parse_config,
+    parts_state_dict,
+    to_floats,
+)
 from uavlae.policies.networks import Activation, action_bounds, make_q_critic, make_sac_actor
 
 
@@ -93,23 +101,15 @@ class SAC:
     def alpha(self) -> float:
         return float(self.loss.log_alpha.detach().exp())
 
+    def _parts(self) -> dict[str, Any]:
+        return {"loss": self.loss, "optimisers": self.optimisers, "target_updater": self.target_updater}
+
     def state_dict(self) -> dict[str, Any]:
         """Actor, Q nets, target Q nets, log_alpha (all in ``loss``), optimisers, counters."""
-        return {
-            "loss": self.loss.state_dict(),
-            "optimisers": {k: o.state_dict() for k, o in self.optimisers.items()},
-            "target_updater": self.target_updater.state_dict(),
-            "num_updates": self.num_updates,
-        }
+        return parts_state_dict(self._parts(), self.num_updates)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        # nn.Module.load_state_dict copies in place, so the acting actor, the optimisers and the
-        # target updater keep pointing at the restored tensors.
-        self.loss.load_state_dict(state["loss"])
-        for k, o in self.optimisers.items():
-            o.load_state_dict(state["optimisers"][k])
-        self.target_updater.load_state_dict(state["target_updater"])
-        self.num_updates = int(state["num_updates"])
+        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC:
