@@ -93,6 +93,7 @@ def test_evaluate_export_and_fly(tmp_path):
 
     from uavlae.evaluate import evaluate_checkpoint
     from uavlae.export import deterministic_actor_module, export_checkpoint
+    from uavlae.fly import load_actor
     from uavlae.factories import make_env, make_learner
 
     run_dir = tmp_path / "sac"
@@ -113,8 +114,16 @@ def test_evaluate_export_and_fly(tmp_path):
         expected = learner.actor(td.clone())["action"]
     plain = deterministic_actor_module(learner, env.action_spec)
     torch.testing.assert_close(plain(td["observation"]), expected)
-    out = export_checkpoint(run_dir, tmp_path / "actor.pt")
-    torch.testing.assert_close(torch.jit.load(str(out))(td["observation"]), expected)
+    out = export_checkpoint(run_dir, tmp_path / "actor.pt2")
+    exported, meta = load_actor(out)
+    torch.testing.assert_close(exported(td["observation"]), expected)
+    torch.testing.assert_close(exported(td["observation"][:1]), expected[:1])  # any batch size
+    assert meta["algo"] == "sac" and meta["obs_dim"] == td["observation"].shape[-1]
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []  # no temp file left
+    torn = tmp_path / "torn.pt2"
+    torn.write_bytes(out.read_bytes()[:100])
+    with pytest.raises(ValueError, match="not an actor written by"):
+        load_actor(torn)
 
     code = (
         "import sys, json; from uavlae.fly import main; "
@@ -125,6 +134,16 @@ def test_evaluate_export_and_fly(tmp_path):
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert '"DCR"' in res.stdout
+
+    # the CLI: writes only the actor (no Hydra run folder, .hydra/ or log file where it runs)
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    cli = [sys.executable, "-m", "uavlae.export", f"checkpoint={run_dir}", f"out={cwd / 'a.pt2'}"]
+    res = subprocess.run(cli, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert sorted(p.name for p in cwd.iterdir()) == ["a.pt2"]
+    torch.testing.assert_close(load_actor(cwd / "a.pt2")[0](td["observation"]), expected)
 
 
 def test_checkpoint_is_atomic_and_falls_back(tmp_path):

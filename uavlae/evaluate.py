@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.factories import CONF_DIR
+from uavlae.factories import CONF_DIR, without_hydra_output
 
 log = logging.getLogger(__name__)
 
@@ -139,4 +140,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv = without_hydra_output(sys.argv)
     main()

@@ -1,16 +1,23 @@
-"""Deployment export: the trained actor alone as a TorchScript file (traced) (no torchrl at run time).
+"""Deployment export: the trained actor alone as a ``torch.export`` program (no torchrl at run time).
 
-``python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt`` writes a traced
+``python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2`` writes an exported
 :class:`DeterministicActor` (observation ``[..., obs_dim]`` -> action ``[..., 2]`` in the action
 box: the tanh of the Gaussian mean for SAC/PPO/CPO, the tanh of the output for DDPG, i.e. what
 the actor does under ``ExplorationType.DETERMINISTIC``) with the env config embedded as
 ``meta.json``, so ``python -m uavlae.fly`` can rebuild the observation of the same world.
+Load it anywhere with torch alone: :func:`uavlae.fly.load_actor`, or
+``torch.export.load(path).module()(observation)``.
+
+The file is written atomically (a temporary file, then a rename), so an interrupted export never
+leaves a truncated actor where a good one was.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from uavlae.factories import CONF_DIR, package_versions
+from uavlae.factories import CONF_DIR, package_versions, without_hydra_output
 
 
 class DeterministicActor(nn.Module):
@@ -66,17 +73,21 @@ def deterministic_actor_module(learner: Any, action_spec: Any) -> DeterministicA
 
 
 def export_actor(learner: Any, action_spec: Any, path: str | Path, meta: dict[str, Any]) -> Path:
-    """Trace the deterministic actor and save it with ``meta`` (env config, versions) inside.
-
-    Traced, not scripted: torchrl's ``MLP.forward`` takes ``*inputs``, which TorchScript's
-    compiler rejects; the traced graph has no Python control flow and any batch shape works."""
+    """Export the deterministic actor with ``torch.export`` and save it with ``meta`` (env config,
+    versions) inside. The batch dimension is dynamic: any ``[N, obs_dim]`` observation works."""
     module = deterministic_actor_module(learner, action_spec)
     example = torch.zeros(2, int(meta["obs_dim"]))
+    batch = torch.export.Dim("batch", min=1)
     with torch.no_grad():
-        scripted = torch.jit.trace(module, example)
+        program = torch.export.export(module, (example,), dynamic_shapes={"observation": {0: batch}})
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.jit.save(scripted, str(path), _extra_files={"meta.json": json.dumps(meta)})
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        torch.export.save(program, str(tmp), extra_files={"meta.json": json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -106,9 +117,10 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     if not cfg.checkpoint or not cfg.get("out"):
-        raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt")
+        raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2")
     print(export_checkpoint(cfg.checkpoint, cfg.out))
 
 
 if __name__ == "__main__":
+    sys.argv = without_hydra_output(sys.argv)
     main()

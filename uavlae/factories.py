@@ -350,6 +350,17 @@ def trim_csv_scalars(log_dir: Path, max_step: int) -> None:
             f.write_text("".join(ln + "\n" for ln in kept))
 
 
+# Commands that only read a run (evaluate, export) write next to the checkpoint: no Hydra run
+# folder, no .hydra/ copy and no log file in the working directory.
+NO_HYDRA_OUTPUT = ("hydra.output_subdir=null", "hydra.run.dir=.", "hydra/job_logging=stdout")
+
+
+def without_hydra_output(argv: list[str]) -> list[str]:
+    """``argv`` plus :data:`NO_HYDRA_OUTPUT` (a setting the user typed wins)."""
+    given = {a.split("=", 1)[0] for a in argv[1:]}
+    return argv + [o for o in NO_HYDRA_OUTPUT if o.split("=", 1)[0] not in given]
+
+
 def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any]) -> RunLogger:
     """``conf/logger`` -> :class:`RunLogger`; CSV under ``<run_dir>/logs/scalars``, the wandb
     run (offline by default) under ``<run_dir>/wandb`` with the resolved config, the git

@@ -1,6 +1,6 @@
 """Fly an exported actor on a scenario with torch alone (no torchrl, no LLM):
 
-    python -m uavlae.fly --actor actor.pt --scenario scenario.json [--index 0] [--png out.png]
+    python -m uavlae.fly --actor actor.pt2 --scenario scenario.json [--index 0] [--png out.png]
 
 The scenario file is one scenario object or a list of them (``uavlae.envs.scenario`` JSON, as
 the evaluation sets are saved). The world is the pure-torch ``uavlae.envs.world`` step with the
@@ -59,7 +59,24 @@ def scenario_tensors(d: dict[str, Any], cfg: Any) -> dict[str, torch.Tensor]:
     return out
 
 
-def fly(actor: torch.jit.ScriptModule, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> dict[str, Any]:
+def load_actor(path: str | Path) -> tuple[Any, dict[str, Any]]:
+    """An actor written by ``python -m uavlae.export`` (callable ``observation -> action``) and
+    its ``meta`` (env config, algorithm, frames, versions); needs torch only."""
+    extra = {"meta.json": ""}
+    try:
+        program = torch.export.load(str(path), extra_files=extra)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # a torn file, a TorchScript file, anything else that is not ours
+        raise ValueError(f"{path} is not an actor written by `python -m uavlae.export` ({type(e).__name__}: {e})") from e
+    try:
+        meta = json.loads(extra["meta.json"])
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} has no valid meta.json (was it written by `python -m uavlae.export`?)") from e
+    return program.module(), meta
+
+
+def fly(actor: Any, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> dict[str, Any]:
     """One episode of ``actor`` in ``scenario``; returns the metrics and the trajectory."""
     world, _ = _world_modules()
     layout = world.ObservationLayout(env_cfg)
@@ -99,16 +116,14 @@ def fly(actor: torch.jit.ScriptModule, env_cfg: Any, scenario: dict[str, Any], s
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--actor", required=True, help="TorchScript actor written by python -m uavlae.export")
+    p.add_argument("--actor", required=True, help="actor file written by python -m uavlae.export (.pt2)")
     p.add_argument("--scenario", required=True, help="scenario JSON (one object, or a list)")
     p.add_argument("--index", type=int, default=0, help="which scenario of a list")
     p.add_argument("--seed", type=int, default=0, help="seeds the other UAVs' random motion")
     p.add_argument("--png", default=None, help="draw the flight to this PNG (needs matplotlib)")
     args = p.parse_args(argv)
 
-    extra = {"meta.json": ""}
-    actor = torch.jit.load(args.actor, _extra_files=extra)
-    meta = json.loads(extra["meta.json"])
+    actor, meta = load_actor(args.actor)
     _, config = _world_modules()
     env_cfg = config.make_env_config(meta["env"])
     data = json.loads(Path(args.scenario).read_text())
