@@ -166,12 +166,17 @@ RESUME = [
 ]
 
 
-def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path):
+@pytest.mark.parametrize("exp", ["sac", "sac_heuristic"])
+def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path, exp):
+    # sac_heuristic: the heuristic advisor's plan cache shapes its actions, so it is checkpointed
     from uavlae.train import run
 
     run_dir = tmp_path / "killed"
     env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true")
-    cmd = [sys.executable, "-m", "uavlae.train", "+exp=sac", f"run_dir={run_dir}", *RESUME]
+    # wandb exports WANDB_SERVICE once this process has used it; a child given it would register
+    # its run with our service, which keeps the run "in use" after the SIGKILL, unlike a real crash
+    env.pop("WANDB_SERVICE", None)
+    cmd = [sys.executable, "-m", "uavlae.train", f"+exp={exp}", f"run_dir={run_dir}", *RESUME]
     proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     last = run_dir / "checkpoints" / LAST
     deadline = time.monotonic() + 300
@@ -199,7 +204,7 @@ def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path):
     steps = _csv_steps(run_dir, "time/fps")  # one CSV, no frame logged twice
     assert steps == sorted(set(steps)) and steps[-1] == 384
 
-    straight = run(_cfg("+exp=sac", f"run_dir={tmp_path / 'straight'}", *RESUME[:-1], "logger.wandb.mode=disabled"))
+    straight = run(_cfg(f"+exp={exp}", f"run_dir={tmp_path / 'straight'}", *RESUME[:-1], "logger.wandb.mode=disabled"))
     assert resumed == straight
 
 

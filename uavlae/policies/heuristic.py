@@ -164,6 +164,21 @@ class HeuristicPolicy(TensorDictModuleBase):
         self.graph_rebuilds = 0  # rows whose graph was (re)built, for tests and benchmarks
         self.tight_rows = 0  # of those, rows that needed the tight corners
 
+    # ------------------------------------------------------------------ state (exact resume)
+    def cache_state(self) -> dict[str, Any]:
+        """The per-row caches (scenario graph and plan) as plain tensors. Actions depend on the
+        plan cache (a cached waypoint is kept until a replan), so a checkpoint holds it for a
+        resume that acts exactly as the uninterrupted run would."""
+        return {
+            "graph": None if self._cache is None else {k: v.clone() for k, v in self._cache.items()},
+            "plan": None if self._plan_state is None else {k: v.clone() for k, v in self._plan_state.items()},
+        }
+
+    def load_cache_state(self, state: Mapping[str, Any]) -> None:
+        graph, plan = state.get("graph"), state.get("plan")
+        self._cache = None if graph is None else {k: v.clone() for k, v in graph.items()}
+        self._plan_state = None if plan is None else {k: v.clone() for k, v in plan.items()}
+
     # ------------------------------------------------------------------ static graph
     def _levels(self) -> tuple[float, float]:
         c = self.cfg

@@ -112,6 +112,14 @@ class HeuristicAdvisor:
             self.calls = self.rows_advised = 0
         return out
 
+    def state_dict(self) -> dict[str, Any]:
+        """The heuristic's plan and graph caches and the counters (checkpoints: exact resume)."""
+        return {"cache": self.heuristic.cache_state(), "calls": self.calls, "rows_advised": self.rows_advised}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.heuristic.load_cache_state(state["cache"])
+        self.calls, self.rows_advised = int(state["calls"]), int(state["rows_advised"])
+
 
 class LLMAdvisorAdapter:
     """An :class:`uavlae.llm.LLMAdvisor` behind the advisor protocol.
@@ -352,11 +360,16 @@ class OverridePolicy(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ state
     def get_extra_state(self) -> dict[str, Any]:
-        return {"generator": self.generator.get_state(), "counts": dict(self.counts)}
+        # an advisor with state that shapes its answers (the heuristic's plan cache) saves it too
+        adv = getattr(self.advisor, "state_dict", None)
+        return {"generator": self.generator.get_state(), "counts": dict(self.counts),
+                "advisor": adv() if adv is not None else None}
 
     def set_extra_state(self, state: Mapping[str, Any]) -> None:
         self.generator.set_state(state["generator"])
         self.counts = dict(state["counts"])
+        if state.get("advisor") is not None and hasattr(self.advisor, "load_state_dict"):
+            self.advisor.load_state_dict(state["advisor"])
 
     def __deepcopy__(self, memo: dict) -> "OverridePolicy":
         # A target network is a copy of the actor, never of this wrapper (whose advisor owns an
