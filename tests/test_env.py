@@ -116,3 +116,43 @@ def test_invariants_over_random_rollouts(seed):
 def test_bad_batch_size_is_a_clear_error():
     with pytest.raises(ValueError, match="batch_size"):
         UAVEnv(batch_size=[2, 3])
+
+
+@pytest.mark.parametrize("mode", ["pool", "no_pool", "fixed"])
+def test_maybe_reset_row_path_equals_torchrl_generic_path(mode):
+    """UAVEnv.maybe_reset (index_put on the done rows) gives exactly what EnvBase.maybe_reset
+    (reset of the done rows, then a where per entry) gives, on a hand-made done mask, and leaves
+    the transition's "next" entries untouched."""
+    from torchrl.envs import EnvBase
+
+    from uavlae.envs.scenario import sample_scenarios
+
+    B = 6
+
+    def make():
+        if mode == "fixed":
+            source = UAVEnv(batch_size=[1], seed=3)
+            return UAVEnv(batch_size=[B], seed=0, scenarios=sample_scenarios(source.cfg, 4, source.rng))
+        cfg = {"sampling": {"pool_size": 0}} if mode == "no_pool" else None
+        return UAVEnv(cfg, batch_size=[B], seed=0)
+
+    fast, slow = make(), make()
+    td_fast, td_slow = fast.reset(), slow.reset()
+    action = torch.tensor([[0.3, -0.2]]).expand(B, 2)
+    for mask in ([1, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 1], [0, 1, 1, 1, 1, 1]):
+        done = torch.tensor(mask, dtype=torch.bool).unsqueeze(-1)
+        td_fast = fast.step(td_fast.set("action", action.clone()))
+        td_slow = slow.step(td_slow.set("action", action.clone()))
+        for td in (td_fast, td_slow):  # the hand-made mask in place of the world's own
+            td["next", "done"] = done.clone()
+        terminal = td_fast["next"].clone()
+        root_fast = fast.maybe_reset(fast._step_mdp(td_fast))
+        root_slow = EnvBase.maybe_reset(slow, slow._step_mdp(td_slow))
+        assert set(root_fast.keys(True, True)) == set(root_slow.keys(True, True))
+        for key in root_slow.keys(True, True):
+            assert torch.equal(root_fast[key], root_slow[key]), key
+        assert (td_fast["next"] == terminal).all()  # the transition keeps its terminal data
+        keep = ~done.squeeze(-1)
+        assert torch.equal(root_fast["state", "position"][keep], terminal["state", "position"][keep])
+        assert (root_fast["state", "step"][~keep] == 0).all() and not root_fast["done"].any()
+        td_fast, td_slow = root_fast, root_slow

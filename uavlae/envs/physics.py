@@ -273,15 +273,15 @@ def _retry_headings(
     """Velocities for the blocked OUs: same speed, the first of ``headings`` whose move is valid,
     else 0 (hover). On CPU only the blocked OUs are tested (they are few); on an accelerator the
     dense form avoids a host sync. Both give the same result."""
-    speed = torch.linalg.vector_norm(v, dim=-1)
-    tries_all = _heading_velocity(speed.expand_as(headings), headings)  # [T, ..., K, 2]
     if pos.device.type == "cpu" and not torch.compiler.is_compiling():
         out = torch.zeros_like(v)
         bad = (~ok).nonzero(as_tuple=True)  # indices into [..., K]
         if bad[0].numel() == 0:
             return out
         lead = bad[:-1]  # batch indices of each blocked OU
-        tries = tries_all[(slice(None), *bad)]  # [T, n, 2]
+        heads = headings[(slice(None), *bad)]  # [T, n]
+        speed = torch.linalg.vector_norm(v[bad], dim=-1)
+        tries = _heading_velocity(speed.expand_as(heads), heads)  # [T, n, 2]
         start = pos[bad]  # [n, 2], each with its own rectangles [n, Z, 4]
         end = start + tries * t_fly
         hits = segment_hits_rects(start, end, blocked[lead], blocked_mask[lead]).any(-1)
@@ -290,6 +290,8 @@ def _retry_headings(
         chosen = tries[first, torch.arange(first.numel(), device=pos.device)]
         out[bad] = torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
         return out
+    speed = torch.linalg.vector_norm(v, dim=-1)
+    tries_all = _heading_velocity(speed.expand_as(headings), headings)  # [T, ..., K, 2]
     tries_ok = _ou_move_ok(pos, tries_all, blocked, blocked_mask, x_size, y_size, t_fly)  # [T, ..., K]
     first = tries_ok.to(torch.uint8).argmax(0)
     chosen = torch.gather(tries_all, 0, first[None, ..., None].expand(1, *tries_all.shape[1:])).squeeze(0)

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
@@ -82,6 +82,8 @@ class UAVEnv(EnvBase):
         self._fixed: TensorDictBase | None = None
         self._pool: TensorDictBase | None = None
         self._pool_pos = 0
+        self._init_cache: dict[NestedKey, torch.Tensor] = {}
+        self._init_cache_of: TensorDictBase | None = None
         if scenarios is not None:
             self.set_scenarios(scenarios)
         self._make_specs()
@@ -144,6 +146,8 @@ class UAVEnv(EnvBase):
             shape=b,
             device=self.device,
         )
+        # what a root coming from step_mdp must hold for maybe_reset's row-wise path
+        self._reset_keys_expected = ["observation", *(("state", k) for k in STATE_KEYS)]
         self.action_spec = Bounded(-1.0, 1.0, shape=(B, 2), dtype=f, device=self.device)
         self.reward_spec = u(1)
         self.done_spec = Composite(
@@ -206,18 +210,86 @@ class UAVEnv(EnvBase):
 
     def _draw(self, n: int) -> TensorDictBase:
         """``n`` fresh scenarios, taken in order from a pool refilled ``pool_size`` at a time."""
-        size = self.cfg.sampling.pool_size
-        if size == 0:
+        if self.cfg.sampling.pool_size == 0:
             return sample_scenarios(self.cfg, n, self.rng, device=self.device)
+        start = self._take(n)
+        return self._pool[start : start + n]
+
+    def _take(self, n: int) -> int:
+        """Hands out the next ``n`` pool entries (refilling the pool first if it holds fewer):
+        returns the index of the first one in ``self._pool``."""
+        size = self.cfg.sampling.pool_size
         have = 0 if self._pool is None else self._pool.batch_size[0] - self._pool_pos
         if have < n:
             fresh = sample_scenarios(self.cfg, max(size, n - have), self.rng, device=self.device)
             rest = self._pool[self._pool_pos:] if have else None
             self._pool = fresh if rest is None else torch.cat([rest, fresh], 0)
             self._pool_pos = 0
-        out = self._pool[self._pool_pos : self._pool_pos + n]
+        start = self._pool_pos
         self._pool_pos += n
-        return out
+        return start
+
+    def _initial_rows(self, scen: TensorDictBase) -> dict[NestedKey, torch.Tensor]:
+        """The root entries that a reset writes for these scenarios and that are not all zero
+        (``observation`` and every ``("state", k)``), one row per scenario."""
+        state = initial_state(scen.to_dict(), self.cfg)
+        rows: dict[NestedKey, torch.Tensor] = {"observation": self.layout.build(state)}
+        rows.update({("state", k): state[k] for k in STATE_KEYS})
+        return rows
+
+    def _cached_initial_rows(self, scen: TensorDictBase) -> dict[NestedKey, torch.Tensor]:
+        """``_initial_rows`` of the whole scenario pool (or of the fixed scenarios), computed once
+        per pool: a partial reset then only slices it."""
+        if self._init_cache_of is not scen:
+            self._init_cache = self._initial_rows(scen)
+            self._init_cache_of = scen
+        return self._init_cache
+
+    def _fresh_rows(self, n: int, idx: torch.Tensor) -> dict[NestedKey, torch.Tensor]:
+        """The fresh root entries of the ``n`` rows ``idx`` that a partial reset starts again,
+        drawn in the same order as ``_reset`` draws them."""
+        if self._fixed is not None:
+            init = self._cached_initial_rows(self._fixed)
+            which = idx % self._fixed.batch_size[0]
+            return {k: v[which] for k, v in init.items()}
+        if self.cfg.sampling.pool_size == 0:
+            return self._initial_rows(sample_scenarios(self.cfg, n, self.rng, device=self.device))
+        start = self._take(n)
+        init = self._cached_initial_rows(self._pool)
+        return {k: v[start : start + n] for k, v in init.items()}
+
+    def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """``EnvBase.maybe_reset`` for a root coming from ``step_mdp``: the done rows start a
+        fresh scenario, the other rows are untouched; the same result as TorchRL's generic path
+        (``reset`` of the done rows, then a ``where`` per entry), written with one out-of-place
+        ``index_put``/``index_fill`` per entry on the done rows only. Every returned tensor is
+        new: the transition's ``"next"`` entries, which the root shares, keep the terminal data.
+        Anything out of the ordinary (no ``done``, every row done, a root that is not a plain
+        ``TensorDict``, or missing one of the env's entries) takes TorchRL's generic path."""
+        done = tensordict.get("done", None) if type(tensordict) is TensorDict else None
+        if done is None or done.shape != (*self.batch_size, 1):
+            return super().maybe_reset(tensordict)
+        rows = done.reshape(self.batch_size)
+        n = int(rows.sum())
+        if n == 0:
+            return tensordict
+        if n == self.batch_size[0]:
+            return super().maybe_reset(tensordict)
+        keys = tensordict.keys(True, True)
+        if any(k not in keys for k in self._reset_keys_expected):
+            return super().maybe_reset(tensordict)
+        idx = rows.nonzero().squeeze(-1)
+        fresh = self._fresh_rows(n, idx)
+        tensordict = tensordict.copy()  # shallow: the entries are replaced below, never written into
+        tensordict.pop("_reset", None)
+
+        def merge(key, value):
+            new = fresh.get(key)
+            if new is None:  # TorchRL pads what the reset does not produce with zeros
+                return value.index_fill(0, idx, 0)
+            return value.index_put((idx,), new)
+
+        return tensordict.apply(merge, named=True, nested_keys=True)
 
     def _output(
         self,
