@@ -1,6 +1,7 @@
 """Env-steps per second: UAVEnv through the TorchRL API vs the gymnasium adapter, side by side.
 
     python benchmarks/env_throughput.py [--batches 1 64 1024 4096] [--seconds 3] [--device cpu] [--compile]
+                                        [--threads 1] [--extra-threads 2]
 
 Both paths run the same world (``world_step``). The TorchRL path is the loop a collector runs:
 ``step_and_maybe_reset`` with a policy's actions written into the tensordict, so partial resets
@@ -8,7 +9,9 @@ Both paths run the same world (``world_step``). The TorchRL path is the loop a c
 through ``UAVGymEnv`` with numpy actions. ``--compile`` adds, for each batch size, a row with
 ``UAVEnv(compile_step=True)`` (the step through ``torch.compile``) measured right after the eager
 one in the same run; its one-off compile time (first step) is reported separately as
-``compile_seconds``. Writes ``benchmarks/env_throughput.json``.
+``compile_seconds``. ``--extra-threads 2`` (the default) then measures the largest batch again
+with 2 intra-op threads (rows with ``"threads": 2``; every other row runs with ``--threads``,
+default 1). Writes ``benchmarks/env_throughput.json``.
 """
 
 from __future__ import annotations
@@ -88,6 +91,18 @@ def bench_gym(seconds: float, seed: int = 0) -> dict:
             "episodes": episodes}
 
 
+def _row(b: int, compiled: bool, threads: int, args: argparse.Namespace, gym: dict) -> dict:
+    r = bench_torchrl(b, args.seconds, args.device, compile_step=compiled)
+    r["threads"] = threads
+    r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
+    tag = "compiled" if compiled else "eager"
+    extra = f"  (one-off compile {r['compile_seconds']:.1f} s)" if compiled else ""
+    print(f"UAVEnv B={b:>5} ({args.device}, {tag:>8}, {threads} thread{'s' if threads > 1 else ''}): "
+          f"{r['env_steps_per_s']:>12,.0f} env-steps/s  {r['ms_per_call']:7.2f} ms/call  "
+          f"x{r['ratio_vs_gym']:.1f} vs gym{extra}", flush=True)
+    return r
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
@@ -96,6 +111,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=int(os.environ.get("UAVLAE_NUM_THREADS", "1")))
     ap.add_argument("--compile", action="store_true",
                     help="also measure UAVEnv(compile_step=True) next to each eager row")
+    ap.add_argument("--extra-threads", type=int, nargs="*", default=[2], metavar="N",
+                    help="after the main table, measure the largest batch again with N intra-op "
+                         "threads (eager, and compiled with --compile); rows labelled threads=N "
+                         "(default: 2, the target machine's core count; none: no extra rows)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("env_throughput.json")))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -105,13 +124,15 @@ def main() -> None:
     rows = []
     for b in args.batches:
         for compiled in (False, True) if args.compile else (False,):
-            r = bench_torchrl(b, args.seconds, args.device, compile_step=compiled)
-            r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
-            rows.append(r)
-            tag = "compiled" if compiled else "eager"
-            extra = f"  (one-off compile {r['compile_seconds']:.1f} s)" if compiled else ""
-            print(f"UAVEnv B={b:>5} ({args.device}, {tag:>8}): {r['env_steps_per_s']:>12,.0f} env-steps/s  "
-                  f"{r['ms_per_call']:7.2f} ms/call  x{r['ratio_vs_gym']:.1f} vs gym{extra}", flush=True)
+            rows.append(_row(b, compiled, args.threads, args, gym))
+    # the same loop with more intra-op threads (the gym reference stays single-threaded)
+    for n in args.extra_threads or []:
+        if n == args.threads:
+            continue
+        torch.set_num_threads(n)
+        for compiled in (False, True) if args.compile else (False,):
+            rows.append(_row(max(args.batches), compiled, n, args, gym))
+        torch.set_num_threads(args.threads)
     result = {"machine": describe_machine(), "device": args.device, "threads": args.threads,
               "seconds_per_measurement": args.seconds, "gym": gym, "torchrl": rows,
               "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}

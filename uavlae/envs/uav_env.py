@@ -32,6 +32,22 @@ _BOOL_STATE = {"nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"}
 _INT_STATE = {"step", "served_ge"}
 
 
+def _inductor_options(device: torch.device) -> dict[str, Any]:
+    """Inductor settings for the compiled step. On an x86 CPU with AVX2, naming the vector width
+    (8 floats) and capping fusion at 8 nodes per kernel makes the compiled step about 25% faster
+    than Inductor's defaults (benchmarks/env_throughput.py, B = 4096, one thread): with the
+    defaults the many tiny entity dimensions (2, 4, 7, 15) end up in a few huge fused kernels
+    that run mostly scalar code. Elsewhere: the defaults."""
+    if device.type != "cpu":
+        return {}
+    from torch._inductor import cpu_vec_isa
+
+    isa = str(cpu_vec_isa.pick_vec_isa())
+    if not isa.startswith("avx"):
+        return {}
+    return {"cpp.simdlen": 8, "max_fusion_size": 8}
+
+
 class UAVEnv(EnvBase):
     """Many independent scenarios of the paper's world, stepped at once.
 
@@ -169,7 +185,9 @@ class UAVEnv(EnvBase):
         # OU heading retries run eagerly in between (physics._retry_headings_outside_graph: one
         # deliberate graph break; dynamo resumes each frame on the stack, so four graphs);
         # elsewhere the step is one graph.
-        return torch.compile(core, dynamic=False, fullgraph=self.device.type != "cpu")
+        return torch.compile(
+            core, dynamic=False, fullgraph=self.device.type != "cpu", options=_inductor_options(self.device)
+        )
 
     def _set_seed(self, seed: int | None) -> None:
         rng = torch.Generator(device=self.device)
