@@ -248,9 +248,27 @@ def _ou_move_ok(
     """True where the OU move pos -> pos + vel·t_fly meets no blocked rectangle and ends inside A."""
     end = pos + vel * t_fly
     rects, rmask = blocked.unsqueeze(-3), blocked_mask.unsqueeze(-2)  # [..., 1, Z, 4], [..., 1, Z]
-    if pos.device.type == "cpu" and not torch.compiler.is_compiling():
+    eager_cpu = pos.device.type == "cpu" and not torch.compiler.is_compiling()
+    if eager_cpu and pos.shape[:-2] == blocked.shape[:-2] and end.shape == pos.shape:
         # A move is at most v_max·t_fly long, so few (OU, rectangle) pairs even share a bounding
-        # box: run the exact test on those pairs only.
+        # box: run the exact test on those pairs only. The bounding-box screen runs batch-last
+        # ([Z, K, N], the batch contiguous), where eager's broadcast compares vectorise.
+        n, k, z = math.prod(pos.shape[:-2]), pos.shape[-2], blocked.shape[-2]
+        p0, p1 = pos.reshape(n, k, 2), end.reshape(n, k, 2)
+        r = blocked.reshape(n, z, 4)
+        lo = torch.minimum(p0, p1).permute(2, 1, 0).contiguous().unsqueeze(1)  # [2, 1, K, N]
+        hi = torch.maximum(p0, p1).permute(2, 1, 0).contiguous().unsqueeze(1)
+        rt = r.permute(2, 1, 0).contiguous().unsqueeze(-2)  # [4, Z, 1, N]
+        near = (lo[0] <= rt[2]) & (hi[0] >= rt[0]) & (lo[1] <= rt[3]) & (hi[1] >= rt[1])
+        near &= blocked_mask.reshape(n, z).t().unsqueeze(1)  # [Z, K, N]
+        hit = torch.zeros(p0.shape[:-1], dtype=torch.bool, device=pos.device)  # [N, K]
+        iz, ik, ib = near.nonzero(as_tuple=True)
+        if iz.numel():
+            one = torch.ones((iz.numel(), 1), dtype=torch.bool, device=pos.device)
+            h = segment_hits_rects(p0[ib, ik], p1[ib, ik], r[ib, iz].unsqueeze(-2), one).squeeze(-1)
+            hit[ib[h], ik[h]] = True
+        return ~hit.reshape(pos.shape[:-1]) & ~outside_area(end, x_size, y_size)
+    if eager_cpu:
         shape = torch.broadcast_shapes(end.shape[:-1] + (1,), rmask.shape)
         near = _boxes_overlap(pos.unsqueeze(-2), end.unsqueeze(-2), rects) & rmask
         near = near.expand(shape)
