@@ -43,16 +43,21 @@ def optimiser_step(
 
     The learners sum losses whose gradients touch disjoint parameter sets (torchrl detaches
     the critic in the actor loss and the actor in the critic target), so one backward equals
-    separate ones. Gradients are clipped per optimiser; the pre-clip norms are returned.
+    separate ones. Gradients are clipped per parameter group (a group's ``"name"``, else the
+    optimiser's name: one group per optimiser gives per-optimiser clipping); the pre-clip norms
+    are returned.
     """
     for opt in optimisers.values():
         opt.zero_grad(set_to_none=True)
     loss.backward()
     norms = {}
     for name, opt in optimisers.items():
-        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
-        if max_grad_norm is not None and params:
-            norms[f"grad_norm_{name}"] = torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
+        if max_grad_norm is not None:
+            for group in opt.param_groups:
+                params = [p for p in group["params"] if p.grad is not None]
+                if params:
+                    key = f"grad_norm_{group.get('name', name)}"
+                    norms[key] = torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
         opt.step()
     return norms
 
