@@ -191,6 +191,58 @@ def test_sac_update(env, obs_dim, replay_batch):
     assert sac.alpha != alpha_before  # automatic entropy tuning moves alpha
 
 
+def _sac_after(updates: int, obs_dim: int, spec, batch: TensorDictBase, **cfg) -> dict:
+    torch.manual_seed(0)
+    sac = make_sac(cfg, obs_dim, spec)
+    for i in range(updates):
+        torch.manual_seed(100 + i)  # the same actor noise each step, whatever each path draws
+        sac.update(batch.clone())
+    return sac.state_dict()
+
+
+def test_sac_compiled_update_matches_eager(env, obs_dim, replay_batch):
+    """``compile: true`` is the same SAC: same parameters, targets and optimiser moments after
+    a few updates from the same seed, up to float rounding. Inductor must draw the actor noise
+    with torch's own generator (``fallback_random``) for the two paths to see the same samples."""
+    import torch._inductor.config as inductor_config
+
+    eager = _sac_after(5, obs_dim, env.action_spec, replay_batch)
+    with inductor_config.patch(fallback_random=True):
+        compiled = _sac_after(5, obs_dim, env.action_spec, replay_batch, compile=True)
+    for key, value in eager["loss"].items():
+        if value.is_floating_point():
+            assert torch.allclose(value, compiled["loss"][key], rtol=1e-4, atol=1e-6), key
+    moments_e, moments_c = eager["optimisers"]["sac"]["state"], compiled["optimisers"]["sac"]["state"]
+    for i in moments_e:
+        assert torch.allclose(moments_e[i]["exp_avg"], moments_c[i]["exp_avg"], rtol=1e-4, atol=1e-7), i
+
+
+def test_sac_loads_three_optimiser_checkpoints(env, obs_dim, replay_batch):
+    """Checkpoints written before the three Adams became one grouped Adam still resume."""
+    torch.manual_seed(0)
+    a = make_sac({}, obs_dim, env.action_spec)
+    a.update(replay_batch.clone())
+    state = copy.deepcopy(a.state_dict())
+    merged, old, offset = state["optimisers"]["sac"], {}, 0
+    for group in merged["param_groups"]:  # split the grouped Adam back into the old layout
+        idx = group["params"]
+        old[group["name"]] = {
+            "state": {i - offset: merged["state"][i] for i in idx if i in merged["state"]},
+            "param_groups": [{**{k: v for k, v in group.items() if k != "name"}, "params": [i - offset for i in idx]}],
+        }
+        offset += len(idx)
+    torch.manual_seed(123)
+    b = make_sac({}, obs_dim, env.action_spec)
+    b.load_state_dict({**state, "optimisers": old})
+    _assert_same(a.state_dict(), b.state_dict())
+
+
+def test_sac_clips_each_group(env, obs_dim, replay_batch):
+    sac = make_sac({"max_grad_norm": 1e-3}, obs_dim, env.action_spec)
+    logs = sac.update(replay_batch.clone())
+    assert {"grad_norm_actor", "grad_norm_critic", "grad_norm_alpha"} <= set(logs)
+
+
 def test_ddpg_update_and_exploration(env, obs_dim, replay_batch):
     ddpg = make_ddpg({}, obs_dim, env.action_spec)
     actor_before, critic_before = params(ddpg.actor), ddpg.loss.value_network_params.data.clone()

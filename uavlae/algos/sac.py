@@ -5,7 +5,8 @@ SPEC.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.9
 ``update(batch)`` takes a replay sample of shape ``[N]`` with
 ``"observation"``, ``"action"``, ``("next", "observation")``, ``("next", "reward")``,
 ``("next", "done")``, ``("next", "terminated")`` and does one gradient step on actor, both Q
-nets and log(alpha), then one soft update of the target Q nets.
+nets and log(alpha) (one fused Adam, a parameter group each), then one soft update of the target
+Q nets (one ``torch._foreach_lerp_``). Speed and its measurement: benchmarks/sac_update_speed.md.
 """
 
 from __future__ import annotations
@@ -15,14 +16,13 @@ from typing import Any, Literal
 
 import torch
 from pydantic import Field
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from uavlae.algos.common import (
     StrictConfig,
-    adam,
     load_parts_state_dict,
     optimiser_step,
     parse_config,
@@ -46,7 +46,11 @@ class SACConfig(StrictConfig):
     num_qvalue_nets: int = Field(2, ge=1)
     loss_function: Literal["l2", "smooth_l1", "l1"] = "l2"
     max_grad_norm: float | None = Field(None, gt=0)  # None: no clipping
-    compile: bool = False  # torch.compile the loss (benchmarks/sac_update_speed.py)
+    # torch.compile the loss: ~1.9x the eager updates/s after a one-off ~10-25 s compile, so worth
+    # it from a few thousand updates on (benchmarks/sac_update_speed.md); off by default so tests
+    # and smoke runs do not pay the compile.
+    compile: bool = False
+    compile_simdlen: int | None = Field(128, gt=0)  # inductor CPU vector bits; see compile_loss
     # Read by the collector / training loop, not by update():
     batch_size: int = Field(256, ge=1)  # Table 4
     buffer_size: int = Field(1_000_000, ge=1)
@@ -58,34 +62,60 @@ def make_sac_config(cfg: Any = None, **overrides: Any) -> SACConfig:
     return parse_config(SACConfig, cfg, **overrides)
 
 
+_LOG_KEYS = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
+_GROUPS = ("actor", "critic", "alpha")  # the Adam parameter groups, in this order
+
+
+def compile_loss(loss: SACLoss, simdlen: int | None) -> Any:
+    """``torch.compile`` of the loss forward (and with it its backward).
+
+    ``simdlen``: inductor's CPU vector width in bits. The backward keeps each ReLU's mask as a
+    bool tensor, and inductor's 256-bit (AVX2) kernels storing one ran at ~0.4 ms per 2x256x64
+    mask on the dev VM's EPYC (eager PyTorch: ~0.06 ms); 128-bit vectors made the compiled update
+    ~15% faster there (benchmarks/sac_update_speed.md). None: inductor's choice for the CPU."""
+    options = None if simdlen is None else {"cpp.simdlen": simdlen}
+    return torch.compile(loss, options=options)
+
+
 @dataclass
 class SAC:
-    """The SAC learner: loss, optimisers, target updater. Build it with :func:`make_sac`."""
+    """The SAC learner: loss, optimiser, target updater. Build it with :func:`make_sac`."""
 
     cfg: SACConfig
     actor: ProbabilisticActor  # the acting policy; shares its parameters with ``loss``
     loss: SACLoss
-    optimisers: dict[str, torch.optim.Optimizer]
-    target_updater: SoftUpdate
+    optimisers: dict[str, torch.optim.Optimizer]  # {"sac": Adam with groups actor/critic/alpha}
+    target_updater: SoftUpdate  # owns the source/target pairing; stepped by one foreach call
     num_updates: int = 0
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
+    _sources: list = field(default_factory=list, repr=False)
+    _targets: list = field(default_factory=list, repr=False)
+    _tau: float = field(default=0.0, repr=False)
 
     def __post_init__(self) -> None:
-        # Only the loss is compiled: it traces without graph breaks; a first try compiling the
-        # optimiser steps and SoftUpdate too ran slower than eager (benchmarks/sac_update_speed.md).
-        self._loss_fn = torch.compile(self.loss) if self.cfg.compile else self.loss
+        # Only the loss is compiled. Compiling the whole update too (backward, Adam, the target
+        # lerp) measured slower (benchmarks/sac_update_speed.md): the fused Adam and the foreach
+        # lerp are already one kernel call each, and more graphs mean more guard checks.
+        self._loss_fn = compile_loss(self.loss, self.cfg.compile_simdlen) if self.cfg.compile else self.loss
         self._in_keys = list(self.loss.in_keys)
+        up = self.target_updater
+        for key, source in up._sources.items(True, True):
+            key = key if isinstance(key, tuple) else (key,)
+            self._sources.append(source.data)
+            self._targets.append(up._targets.get(("target_" + key[0], *key[1:])).data)
+        self._tau = 1.0 - up.eps  # SoftUpdate's own weight, bit for bit
 
-    def _step(self, batch: TensorDictBase) -> TensorDict:
+    def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self._loss_fn(batch)
         total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
         norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
-        self.target_updater.step()
-        out = out.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy").detach()
-        for k, v in norms.items():
-            out[k] = v.detach()
-        return out
+        with torch.no_grad():
+            # SoftUpdate: target <- target + tau (source - target), every pair in one call
+            torch._foreach_lerp_(self._targets, self._sources, self._tau)
+        logs = {k: out[k].detach() for k in _LOG_KEYS}
+        logs.update((k, v.detach()) for k, v in norms.items())
+        return logs
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""
@@ -105,11 +135,26 @@ class SAC:
         return {"loss": self.loss, "optimisers": self.optimisers, "target_updater": self.target_updater}
 
     def state_dict(self) -> dict[str, Any]:
-        """Actor, Q nets, target Q nets, log_alpha (all in ``loss``), optimisers, counters."""
+        """Actor, Q nets, target Q nets, log_alpha (all in ``loss``), optimiser, counters."""
         return parts_state_dict(self._parts(), self.num_updates)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if set(state["optimisers"]) == set(_GROUPS):  # written before the optimisers were merged
+            state = {**state, "optimisers": {"sac": _merge_adam_states(state["optimisers"])}}
         self.num_updates = load_parts_state_dict(self._parts(), state)
+
+
+def _merge_adam_states(states: dict[str, Any]) -> dict[str, Any]:
+    """One Adam state dict, a named group per old optimiser, from the three separate ones."""
+    merged: dict[str, Any] = {"state": {}, "param_groups": []}
+    offset = 0
+    for name in _GROUPS:
+        old = states[name]
+        for group in old["param_groups"]:
+            merged["param_groups"].append({**group, "name": name, "params": [i + offset for i in group["params"]]})
+        merged["state"].update({i + offset: s for i, s in old["state"].items()})
+        offset += sum(len(g["params"]) for g in old["param_groups"])
+    return merged
 
 
 def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC:
@@ -129,10 +174,13 @@ def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC
         delay_qvalue=True,
     )
     loss.make_value_estimator(gamma=cfg.gamma)
-    optimisers = {
-        "actor": adam(loss.actor_network_params.values(True, True), lr=cfg.actor_lr),
-        "critic": adam(loss.qvalue_network_params.values(True, True), lr=cfg.critic_lr),
-        "alpha": adam([loss.log_alpha], lr=cfg.alpha_lr),
-    }
+    # One Adam, a group per part: Adam is per-parameter, so this is the maths of three Adams
+    # at a third of the optimiser calls. Fused: one kernel per group instead of a Python loop.
+    groups = [
+        {"name": "actor", "params": list(loss.actor_network_params.values(True, True)), "lr": cfg.actor_lr},
+        {"name": "critic", "params": list(loss.qvalue_network_params.values(True, True)), "lr": cfg.critic_lr},
+        {"name": "alpha", "params": [loss.log_alpha], "lr": cfg.alpha_lr},
+    ]
+    optimisers = {"sac": torch.optim.Adam(groups, fused=True)}
     target_updater = SoftUpdate(loss, tau=cfg.tau)
     return SAC(cfg=cfg, actor=actor, loss=loss, optimisers=optimisers, target_updater=target_updater)
