@@ -3,17 +3,32 @@
 Measures, side by side in one run (STYLE.md rule 10), on the same replay-shaped batch:
 
 - ``uavlae_eager``: :func:`uavlae.algos.sac.make_sac` as shipped (torchrl ``SACLoss``, twin Q
-  under vmap, three Adams, ``SoftUpdate``), ``update(batch)`` including the log ``.item()``s;
-- ``uavlae_compiled``: the same with ``compile: true`` (``torch.compile`` of the gradient step);
-  the compile time is recorded, and the error if compilation fails;
+  under vmap, one fused Adam with three parameter groups, the target lerp in one foreach call),
+  ``update(batch)`` including the log ``.item()``s;
+- ``uavlae_compiled``: the same with ``compile: true`` (``torch.compile`` of the loss, inductor
+  CPU vectors of ``compile_simdlen: 128`` bits, see ``uavlae.algos.sac.compile_loss``);
+- ``compiled_simd_auto``: the same with ``compile_simdlen: null`` (inductor picks, 256-bit on
+  AVX2): isolates what the vector width is worth;
+- ``compiled_whole_update``: loss, backward, Adam step and target lerp as one compiled function
+  (dynamo's ``trace_autograd_ops``, foreach capturable Adam, 128-bit vectors): the alternative
+  of compiling more than the loss;
+- ``compiled_skip_guards``: ``uavlae_compiled`` run under
+  ``torch.compiler.set_stance(skip_guard_eval_unsafe=True)`` after warm-up: NOT offered by the
+  learner (unsafe: a changed module or batch would silently reuse a stale graph); measured
+  only to price dynamo's guard evaluation;
 - ``plain_torch_reference``: the same maths hand-written on bare ``nn.Module``s and tensors
-  (two Q nets, targets, tanh-Gaussian actor, learned alpha), the floor of the Python overhead.
+  (two Q nets, targets, tanh-Gaussian actor, learned alpha), the floor of the eager Python
+  overhead.
+
+Compile times (first three calls) are recorded, and the error if a compilation fails.
 
 Variants alternate within each of ``--repeats`` short rounds; the median and best round of each
 and the per-round (paired) ratio to the reference are reported, so a noisy shared machine hurts
 them alike; the load average before and after is recorded with the machine.
 
     .venv/bin/python benchmarks/sac_update_speed.py            # writes sac_update_speed.json
+    .venv/bin/python benchmarks/sac_update_speed.py --out benchmarks/sac_update_speed_variants.json \
+        --compiled uavlae_compiled,compiled_simd_auto,compiled_whole_update,compiled_skip_guards
 """
 
 from __future__ import annotations
@@ -24,6 +39,7 @@ import json
 import math
 import os
 import statistics
+import sys
 import time
 import traceback
 import warnings
@@ -37,6 +53,7 @@ from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
+from uavlae.algos.common import to_floats  # noqa: E402
 from uavlae.algos.sac import make_sac  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 
@@ -121,6 +138,46 @@ class ReferenceSAC:
         return {"loss_qvalue": q_loss.item(), "loss_actor": actor_loss.item(), "loss_alpha": alpha_loss.item()}
 
 
+def compiled_skip_guards(spec, obs_dim: int, batch):
+    """``compile: true`` with dynamo's guards skipped once warm (unsafe; measurement only)."""
+    sac = make_sac({"compile": True}, obs_dim, spec)
+    for _ in range(3):
+        sac.update(batch)
+
+    def update(b):
+        with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
+            return sac.update(b)
+
+    return update
+
+
+def compiled_whole_update(spec, obs_dim: int):
+    """Loss + backward + Adam + target lerp in one ``torch.compile`` (zero_grad stays outside:
+    dynamo refuses to trace it). Same maths as ``SAC.update``; foreach capturable Adam because
+    dynamo compiles that one."""
+    sac = make_sac({}, obs_dim, spec)
+    groups = [{k: v for k, v in g.items() if k in ("params", "lr", "name")} for g in sac.optimisers["sac"].param_groups]
+    opt = torch.optim.Adam(groups, foreach=True, capturable=True)
+    loss, keys = sac.loss, list(sac.loss.in_keys)
+
+    def step(batch):
+        out = loss(batch)
+        (out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]).backward()
+        opt.step()
+        with torch.no_grad():
+            torch._foreach_lerp_(sac._targets, sac._sources, sac._tau)
+        return {k: out[k].detach() for k in ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")}
+
+    step_c = torch.compile(step, options={"cpp.simdlen": sac.cfg.compile_simdlen})
+
+    def update(batch):
+        opt.zero_grad(set_to_none=True)
+        with torch._dynamo.config.patch(trace_autograd_ops=True):  # backward inside the graph
+            return to_floats(step_c(batch.select(*keys)))
+
+    return update
+
+
 def timed(update, batch, steps: int) -> float:
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -136,6 +193,13 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--repeats", type=int, default=12, help="rounds; variants alternate within each")
     p.add_argument("--no-compile", action="store_true")
+    p.add_argument(
+        "--compiled",
+        default="uavlae_compiled,compiled_skip_guards",
+        help="compiled variants to build, comma list of uavlae_compiled, compiled_simd_auto, "
+        "compiled_whole_update, compiled_skip_guards. They share dynamo's cache on SACLoss.forward, "
+        "so each call also checks the others' guards: the default pair has one cache entry",
+    )
     p.add_argument("--out", type=Path, default=Path(__file__).with_suffix(".json"))
     args = p.parse_args()
 
@@ -156,17 +220,25 @@ def main() -> None:
     ref = ReferenceSAC(args.obs_dim, act_dim, eager.cfg.hidden, eager.cfg)
     variants["plain_torch_reference"] = ref.update
     compiled_info: dict = {"attempted": not args.no_compile}
-    if not args.no_compile:
+    builders = {
+        "uavlae_compiled": lambda: make_sac({"compile": True}, args.obs_dim, spec).update,
+        "compiled_simd_auto": lambda: make_sac({"compile": True, "compile_simdlen": None}, args.obs_dim, spec).update,
+        "compiled_whole_update": lambda: compiled_whole_update(spec, args.obs_dim),
+        "compiled_skip_guards": lambda: compiled_skip_guards(spec, args.obs_dim, batch),
+    }
+    wanted = [] if args.no_compile else [n for n in args.compiled.split(",") if n]
+    for name in wanted:
+        build = builders[name]
         try:
-            comp = make_sac({"compile": True}, args.obs_dim, spec)
+            fn = build()
             t0 = time.perf_counter()
             for _ in range(3):  # first calls compile (and may recompile once)
-                comp.update(batch)
-            compiled_info["compile_s"] = round(time.perf_counter() - t0, 1)
-            variants["uavlae_compiled"] = comp.update
+                fn(batch)
+            compiled_info[f"{name}_compile_s"] = round(time.perf_counter() - t0, 1)
+            variants[name] = fn
         except Exception as e:  # noqa: BLE001 -- record why, keep measuring the rest
-            compiled_info["error"] = f"{type(e).__name__}: {e}"[:2000]
-            compiled_info["traceback_tail"] = traceback.format_exc()[-2000:]
+            compiled_info[f"{name}_error"] = f"{type(e).__name__}: {e}"[:2000]
+            compiled_info[f"{name}_traceback_tail"] = traceback.format_exc()[-2000:]
 
     for fn in variants.values():
         timed(fn, batch, args.warmup)
@@ -181,7 +253,7 @@ def main() -> None:
     paired = {k: statistics.median(x / r for x, r in zip(v, ref_rounds)) for k, v in rounds.items()}
     result = {
         "benchmark": "SAC gradient steps per second (one update = actor + twin Q + alpha + soft target)",
-        "command": "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sac_update_speed.py",
+        "command": "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sac_update_speed.py " + " ".join(sys.argv[1:]),
         "config": {
             "batch": args.batch,
             "obs_dim": args.obs_dim,
