@@ -80,6 +80,7 @@ class TrainerConfig(_Strict):
     keep_checkpoints: int = Field(ge=1, le=2)
     progress_bar: bool
     log_every_batches: int = Field(ge=1)
+    compile_env: bool = False  # UAVEnv(compile_step=True) for the training env
 
     @model_validator(mode="after")
     def _divisible(self) -> "TrainerConfig":
@@ -203,9 +204,14 @@ def make_env(
     seed: int,
     device: str | torch.device = "cpu",
     scenarios: Any = None,
+    compile_step: bool = False,
 ) -> UAVEnv:
-    """``conf/env`` -> the batched world (its own generator seeded with ``seed``)."""
-    return UAVEnv(make_env_config(env_cfg), batch_size=batch_size, device=device, seed=seed, scenarios=scenarios)
+    """``conf/env`` -> the batched world (its own generator seeded with ``seed``; ``compile_step``:
+    the step through ``torch.compile``, see :class:`UAVEnv`)."""
+    return UAVEnv(
+        make_env_config(env_cfg), batch_size=batch_size, device=device, seed=seed, scenarios=scenarios,
+        compile_step=compile_step,
+    )
 
 
 # ---------------------------------------------------------------------------- learner and policies

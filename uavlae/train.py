@@ -155,7 +155,7 @@ def _train(
     from tqdm.auto import tqdm
 
     seed_everything(int(cfg.seed))
-    env = make_env(env_cfg, tr.env_batch_size, seed=int(cfg.seed), device=cfg.device)
+    env = make_env(env_cfg, tr.env_batch_size, seed=int(cfg.seed), device=cfg.device, compile_step=tr.compile_env)
     learner = make_learner(cfg.algo, env)
     off_policy = cfg.algo.name in OFF_POLICY
     has_advisor = cfg.advisor.kind != "none"
