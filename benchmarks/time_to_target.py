@@ -106,6 +106,15 @@ class Clock:
         }
 
 
+def sb3_gradient_steps() -> int:
+    """SB3 steps all ``env_batch`` envs at once, then takes this many gradient steps: the same
+    gradient steps per frame (``utd_ratio``) as ours."""
+    steps = SAC_HP["env_batch"] * SAC_HP["utd_ratio"]
+    if steps < 1 or steps != int(steps):
+        raise SystemExit(f"--env-batch x --utd must be a whole number >= 1 for SB3, got {steps}")
+    return int(steps)
+
+
 def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
     """``uavlae.train.run`` on ``+exp=sac``, with the evaluator and learner timed and stoppable."""
     from hydra import compose, initialize_config_dir
@@ -119,7 +128,8 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
                  f"trainer.eval_episodes={a.eval_episodes}", f"trainer.eval_seed={a.eval_seed}",
                  "trainer.progress_bar=false", "trainer.eval_plots=0", "trainer.checkpoint_every_frames=0",
                  "trainer.checkpoint_replay_buffer=false", "logger.wandb.mode=disabled",
-                 f"trainer.env_batch_size={SAC_HP['env_batch']}", *a.ours_override]
+                 f"trainer.env_batch_size={SAC_HP['env_batch']}", f"trainer.utd_ratio={SAC_HP['utd_ratio']}",
+                 *a.ours_override]
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
     clock = Clock(a.cap_minutes * 60)
@@ -194,7 +204,7 @@ def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
     model = SplitLRSAC(
         "MlpPolicy", vec, learning_rate=SAC_HP["critic_lr"], buffer_size=1_000_000,
         learning_starts=SAC_HP["init_random_frames"], batch_size=SAC_HP["batch_size"], tau=SAC_HP["tau"],
-        gamma=SAC_HP["gamma"], train_freq=1, gradient_steps=n, ent_coef="auto_1.0", target_entropy="auto",
+        gamma=SAC_HP["gamma"], train_freq=1, gradient_steps=sb3_gradient_steps(), ent_coef="auto_1.0", target_entropy="auto",
         policy_kwargs={"net_arch": list(SAC_HP["hidden"]), "activation_fn": torch.nn.ReLU},
         seed=a.seed, device="cpu", verbose=0,
     )
@@ -221,7 +231,7 @@ def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
                 return False
             return True
 
-    print(f"[sb3] stable-baselines3 {stable_baselines3.__version__} SAC, {n} UAVGymEnv, gradient_steps={n}", flush=True)
+    print(f"[sb3] stable-baselines3 {stable_baselines3.__version__} SAC, {n} UAVGymEnv, gradient_steps={sb3_gradient_steps()}", flush=True)
     clock.t0 = time.perf_counter()
     model.learn(total_timesteps=100_000_000, callback=EvalCallback())
     out = clock.summary("sb3_sac", int(model.num_timesteps))
@@ -237,11 +247,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--eval-seed", type=int, default=12345)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--methods", nargs="+", default=["uavlae_sac", "sb3_sac"], choices=["uavlae_sac", "sb3_sac"])
+    p.add_argument("--env-batch", type=int, default=SAC_HP["env_batch"],
+                   help="scenarios stepped together, both methods (default 16)")
+    p.add_argument("--utd", type=float, default=SAC_HP["utd_ratio"],
+                   help="gradient steps per environment frame, both methods (default 1)")
     p.add_argument("--ours-override", nargs="*", default=["algo.compile=true"],
                    help="extra Hydra overrides of our run (default: the compiled SAC update, "
                         "benchmarks/sac_update_speed.md; its one-off compile counts in the wall clock)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "time_to_target.json"))
     a = p.parse_args(argv)
+    SAC_HP.update(env_batch=a.env_batch, utd_ratio=a.utd)
+    sb3_gradient_steps()  # fail early on a combination SB3 cannot run
 
     torch.set_num_threads(1)
     os.environ.setdefault("WANDB_MODE", "disabled")
