@@ -296,6 +296,37 @@ def test_failures_are_not_cached(tmp_path):
     assert len(AdviceCache(tmp_path / "cache.sqlite")) == 0
 
 
+def test_many_connections_open_a_new_cache_file_at_once(tmp_path):
+    # Six connections switching one new file to WAL at the same moment: without the set-up retry
+    # about one round in ten failed with "database is locked" (seen in CI as a flaky two-process
+    # test); 200 rounds make a regression near-certain to show.
+    import threading
+
+    from uavlae.llm import Advice, AdviceCache
+
+    errors: list[str] = []
+    for r in range(200):
+        caches = [AdviceCache(tmp_path / f"r{r}.sqlite", busy_timeout_s=5) for _ in range(6)]
+        barrier = threading.Barrier(len(caches))
+
+        def put(cache: AdviceCache, i: int) -> None:
+            barrier.wait()
+            try:
+                cache.put(f"k{i}", "m", Advice(vx=float(i), vy=0.0, confidence=1.0, reasoning="r"))
+            except Exception as e:  # noqa: BLE001 - collected and asserted below
+                errors.append(repr(e))
+
+        threads = [threading.Thread(target=put, args=(c, i)) for i, c in enumerate(caches)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert len(caches[0]) == 6 or errors
+        for c in caches:
+            c.close()
+    assert errors == []
+
+
 WRITER = """
 import sys
 from uavlae.llm import AdviceCache, Advice

@@ -49,15 +49,38 @@ class AdviceCache:
             conn = sqlite3.connect(self.path, timeout=self.busy_timeout_s, isolation_level=None,
                                    check_same_thread=False)
             conn.execute(f"PRAGMA busy_timeout={int(self.busy_timeout_s * 1000)}")
-            conn.execute("PRAGMA journal_mode=WAL")
-            conn.execute("PRAGMA synchronous=NORMAL")
-            conn.execute(
-                "CREATE TABLE IF NOT EXISTS advice (key TEXT PRIMARY KEY, model TEXT NOT NULL, "
-                "vx REAL NOT NULL, vy REAL NOT NULL, confidence REAL NOT NULL, "
-                "reasoning TEXT NOT NULL, created REAL NOT NULL)"
-            )
+            try:
+                self._set_up(conn)
+            except BaseException:
+                conn.close()
+                raise
             self._conn, self._pid = conn, os.getpid()
         return self._conn
+
+    def _set_up(self, conn: sqlite3.Connection) -> None:
+        """WAL mode and the table. When several processes open a new file at once, switching it
+        to WAL can fail at once with "database is locked" (SQLite does not always call the busy
+        handler there), so this retries with backoff until ``busy_timeout_s``."""
+        deadline, delay = time.monotonic() + self.busy_timeout_s, 0.002
+        while True:
+            try:
+                conn.execute("PRAGMA journal_mode=WAL")
+                conn.execute("PRAGMA synchronous=NORMAL")
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS advice (key TEXT PRIMARY KEY, model TEXT NOT NULL, "
+                    "vx REAL NOT NULL, vy REAL NOT NULL, confidence REAL NOT NULL, "
+                    "reasoning TEXT NOT NULL, created REAL NOT NULL)"
+                )
+                return
+            except sqlite3.OperationalError as e:
+                if "locked" not in str(e) and "busy" not in str(e):
+                    raise
+                if time.monotonic() >= deadline:
+                    raise sqlite3.OperationalError(
+                        f"LLM cache {self.path}: still locked after {self.busy_timeout_s} s ({e})"
+                    ) from e
+                time.sleep(delay)
+                delay = min(2 * delay, 0.1)
 
     def get(self, key: str) -> Advice | None:
         with self._lock:
