@@ -115,6 +115,17 @@ def sb3_gradient_steps() -> int:
     return int(steps)
 
 
+def env_config(name: str):
+    """The ``conf/env/<name>.yaml`` world, validated: both methods train and evaluate on it."""
+    from hydra import compose, initialize_config_dir
+
+    from uavlae.envs import make_env_config
+    from uavlae.factories import CONF_DIR
+
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return make_env_config(compose("config", overrides=[f"env={name}"]).env)
+
+
 def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
     """``uavlae.train.run`` on ``+exp=sac``, with the evaluator and learner timed and stoppable."""
     from hydra import compose, initialize_config_dir
@@ -129,7 +140,7 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
                  "trainer.progress_bar=false", "trainer.eval_plots=0", "trainer.checkpoint_every_frames=0",
                  "trainer.checkpoint_replay_buffer=false", "logger.wandb.mode=disabled",
                  f"trainer.env_batch_size={SAC_HP['env_batch']}", f"trainer.utd_ratio={SAC_HP['utd_ratio']}",
-                 *a.ours_override]
+                 f"env={a.env}", *a.ours_override]
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
     clock = Clock(a.cap_minutes * 60)
@@ -181,7 +192,6 @@ def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from uavlae.envs import make_env_config
     from uavlae.envs.gym_adapter import UAVGymEnv
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import Evaluator
@@ -196,7 +206,7 @@ def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
                     for g in opt.param_groups:
                         g["lr"] = lr
 
-    env_cfg = make_env_config(None)
+    env_cfg = env_config(a.env)
     n = SAC_HP["env_batch"]
     clock = Clock(a.cap_minutes * 60)
     vec = DummyVecEnv([lambda: UAVGymEnv(env_cfg) for _ in range(n)])
@@ -254,6 +264,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--ours-override", nargs="*", default=["algo.compile=true"],
                    help="extra Hydra overrides of our run (default: the compiled SAC update, "
                         "benchmarks/sac_update_speed.md; its one-off compile counts in the wall clock)")
+    p.add_argument("--env", default="default",
+                   help="conf/env group both methods train and evaluate on (default: SPEC's world; "
+                        "shaped: + progress reward and ego-centric observation columns)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "time_to_target.json"))
     a = p.parse_args(argv)
     SAC_HP.update(env_batch=a.env_batch, utd_ratio=a.utd)
@@ -261,17 +274,16 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(1)
     os.environ.setdefault("WANDB_MODE", "disabled")
-    from uavlae.envs import make_env_config
     from uavlae.evaluate import load_or_make_eval_set
 
     work = Path(tempfile.mkdtemp(prefix="ttt_"))
     eval_set = work / "eval_set.json"
-    load_or_make_eval_set(make_env_config(None), eval_set, a.eval_episodes, a.eval_seed)
+    load_or_make_eval_set(env_config(a.env), eval_set, a.eval_episodes, a.eval_seed)
     result = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
               "command": "python benchmarks/time_to_target.py " + " ".join(sys.argv[1:] if argv is None else argv),
               "target": {k: f"{op} {v}" for k, (op, v) in TARGET.items()}, "hyperparameters": SAC_HP,
               "eval_every_frames": a.eval_every, "eval_episodes": a.eval_episodes, "eval_seed": a.eval_seed,
-              "seed": a.seed, "cap_minutes": a.cap_minutes, "ours_overrides": a.ours_override, "methods": {}}
+              "seed": a.seed, "cap_minutes": a.cap_minutes, "env": a.env, "ours_overrides": a.ours_override, "methods": {}}
     for m in a.methods:
         print(f"== {m} (cap {a.cap_minutes:g} min)", flush=True)
         result["methods"][m] = run_ours(a, eval_set, work / "ours") if m == "uavlae_sac" else run_sb3(a, eval_set)

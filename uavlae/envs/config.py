@@ -186,6 +186,11 @@ class RewardConfig(_Strict):
     d_tar: float = Field(707.0, gt=0)
     landing_bonus: float = Field(10.0, ge=0)  # [decision] beyond the paper
     crash_penalty: float = Field(10.0, ge=0)  # [decision] beyond the paper
+    # [decision] beyond the paper, off by default: a progress reward w·(Φ(s') − Φ(s)) with
+    # Φ = −(distance to the current target + d_tar · GEs with data left) / d_tar; the target is
+    # the nearest GE with data, then LA. Its sum over an episode is Φ(end) − Φ(start), so no
+    # loop or hover can farm it; w is about the reward of finishing one GE.
+    progress_weight: float = Field(0.0, ge=0)
 
     @field_validator("sigma")
     @classmethod
@@ -230,6 +235,9 @@ class EnvConfig(_Strict):
     terminate_on_collision: bool = True
     extra_features: bool = True  # [decision] distances to nearest BZ/NFZ/RZ/boundary/LA, in-RZ flag
     obs_distance_scale: float = Field(50.0, gt=0)  # obstacle distances in the observation saturate here
+    # [decision] beyond SPEC §6, off by default: ego-centric columns (vector to the current
+    # target and its direction, vectors to the nearest points of the nearest BZ and NFZ)
+    ego_features: bool = False
 
     @model_validator(mode="after")
     def _zones_fit(self) -> "EnvConfig":

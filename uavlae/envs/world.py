@@ -28,7 +28,7 @@ EVENT_KEYS = (
     "bz_collision", "nfz_entry", "ou_collision", "boundary_exit", "rz_speeding", "landed",
     "energy_exhausted",
 )
-REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5", "r6", "r7", "r8", "r9", "landing", "crash")
+REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5", "r6", "r7", "r8", "r9", "landing", "crash", "progress")
 
 
 def _rect_tensor(rect, batch: int, device, dtype=torch.float32) -> Tensor:
@@ -50,6 +50,53 @@ def nearest_distances(state: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Ten
         "d_boundary": ph.boundary_distance(p, cfg.area.x_size, cfg.area.y_size),
         "d_la": ph.point_rect_distance(p, la, la_mask).squeeze(-1),
     }
+
+
+def current_target(state: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """The DCU's current goal: the nearest GE with data left, or LA once every GE is empty.
+
+    Returns ``(vector from the DCU to the target point, distance to the target, GEs with data
+    left)``. The target point is the GE itself, or the nearest point of LA (distance 0 inside).
+    """
+    p = state["position"]
+    has = state["ge_remaining"] > 0
+    n_left = has.sum(-1)
+    rel_ge = state["ge_pos"] - p.unsqueeze(-2)
+    d_ge = torch.linalg.vector_norm(rel_ge, dim=-1).masked_fill(~has, float("inf"))
+    if d_ge.shape[-1] > 0:
+        near = d_ge.argmin(-1, keepdim=True)
+        rel_near = torch.gather(rel_ge, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+    else:
+        rel_near = torch.zeros_like(p)
+    la = state["landing"]
+    rel_la = torch.stack(
+        (p[..., 0].clamp(la[..., 0], la[..., 2]), p[..., 1].clamp(la[..., 1], la[..., 3])), dim=-1
+    ) - p
+    rel = torch.where((n_left > 0).unsqueeze(-1), rel_near, rel_la)
+    return rel, torch.linalg.vector_norm(rel, dim=-1), n_left
+
+
+def progress_potential(state: dict[str, Tensor], d_tar: float) -> Tensor:
+    """Φ(s) = −(distance to the current target + d_tar · GEs with data left) / d_tar.
+
+    Finishing a GE raises Φ by 1 minus the (≤ d_tar) jump to the next target, so Φ only
+    rises with real progress; the ``progress`` reward term is w·(Φ(s') − Φ(s)).
+    """
+    _, d, n_left = current_target(state)
+    return -(d + d_tar * n_left.to(d.dtype)) / d_tar
+
+
+def nearest_rect_vector(p: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
+    """Vector from ``p`` to the nearest point of the nearest present rectangle (0 inside; 0
+    when none is present)."""
+    if rects.shape[-2] == 0:
+        return torch.zeros_like(p)
+    lo, hi = rects[..., :2], rects[..., 2:]
+    vec = torch.minimum(torch.maximum(p.unsqueeze(-2), lo), hi) - p.unsqueeze(-2)
+    d = torch.linalg.vector_norm(vec, dim=-1).masked_fill(~mask, float("inf"))
+    near = d.argmin(-1, keepdim=True)
+    out = torch.gather(vec, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+    return out * mask.any(-1, keepdim=True).to(p.dtype)
 
 
 def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
@@ -171,6 +218,12 @@ def world_step_core(
         d_la=nxt["d_la"], all_collected=all_collected, energy_left=energy_left, e_min=e_min,
         landed=landed, crashed=crashed, cfg=cfg,
     )
+    w = cfg.reward.progress_weight
+    if w > 0:  # static: the branch costs nothing when the term is off
+        d_tar = cfg.reward.d_tar
+        terms["progress"] = w * (progress_potential(nxt, d_tar) - progress_potential(state, d_tar))
+    else:
+        terms["progress"] = torch.zeros_like(energy_left)
     cost = ph.cost(events, cfg.cost)
     return nxt, events, terms, cost, terminated, truncated
 
@@ -184,8 +237,10 @@ class ObservationLayout:
         self.n_ou = cfg.ou.count.padded
         self.n_zone = (cfg.zones.n_nfz.padded, cfg.zones.n_rz.padded, cfg.zones.n_bz.padded)
         self.extra = cfg.extra_features
+        self.ego = cfg.ego_features
         self.size = (
             5 * self.n_ge + 5 * sum(self.n_zone) + 5 * self.n_ou + 14 + (6 if self.extra else 0)
+            + (8 if self.ego else 0)
         )
         self._divisor = self._column_divisors()
 
@@ -204,6 +259,10 @@ class ObservationLayout:
         cols += xy + [m.v_max] * 2 + [cfg.energy.e_limit, cfg.ge.data_max] + xyxy + xyxy
         if self.extra:
             cols += [cfg.obs_distance_scale] * 4 + [a.diagonal, 1.0]
+        if self.ego:
+            # target vector / diagonal, its unit direction, nearest BZ and NFZ point vectors
+            # (saturated at obs_distance_scale, divided by it)
+            cols += [a.diagonal] * 2 + [1.0] * 2 + [cfg.obs_distance_scale] * 4
         assert len(cols) == self.size
         return torch.tensor(cols, dtype=torch.float64)
 
@@ -252,5 +311,14 @@ class ObservationLayout:
                 s["d_la"].unsqueeze(-1),
                 (s["d_rz"] <= 0).to(p.dtype).unsqueeze(-1),
             ]
+        if self.ego:
+            rel, d, _ = current_target(s)
+            unit = rel / d.clamp_min(1e-6).unsqueeze(-1)
+            scale = cfg.obs_distance_scale
+            parts += [rel, unit]
+            for name in ("bz", "nfz"):
+                vec = nearest_rect_vector(p, s[name], s[name + "_mask"])
+                n = torch.linalg.vector_norm(vec, dim=-1, keepdim=True)
+                parts.append(vec * (scale / n.clamp_min(scale)))  # length saturates at scale
         obs = torch.cat([t.reshape(b, -1) for t in parts], dim=-1)
         return obs / self._divisor.to(device=obs.device, dtype=obs.dtype)

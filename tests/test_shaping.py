@@ -1,0 +1,129 @@
+"""The learning aids beyond the paper (``env=shaped``): the progress reward and the ego-centric
+observation columns, on hand-made scenarios with hand-computed values.
+
+Progress: w·(Φ(s') − Φ(s)), Φ = −(d_target + d_tar·n_left)/d_tar, w = 8, d_tar = 707; the target
+is the nearest GE with data (ground distance), else the nearest point of LA = [475,500]x[0,25].
+"""
+
+import math
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from uavlae.envs import UAVEnv, make_env_config
+from uavlae.envs.scenario import Scenario
+from uavlae.factories import CONF_DIR
+
+SHAPED = {"reward": {"progress_weight": 8.0}, "ego_features": True}
+
+
+def env_with(start, cfg=SHAPED, b=1, **kw):
+    base = dict(nfz=[], rz=[], bz=[], ou_pos=[], ou_vel=[])
+    base.update(kw)
+    return UAVEnv(cfg, batch_size=[b], seed=0, scenarios=[Scenario(start=start, **base)])
+
+
+def step(env, td, action):
+    td["action"] = torch.tensor([action], dtype=torch.float32).expand(env.batch_size[0], 2)
+    out = env.step(td)
+    return out["next"], env.step_mdp(out)
+
+
+def progress(nxt):
+    return float(nxt["reward_terms", "progress"][0].item())
+
+
+def test_approaching_the_nearest_ge_earns_its_distance():
+    # GEs at (300,300) and (100,100); from (300,400) south 10 m: d 100 -> 90, still out of range
+    env = env_with((300.0, 400.0), ge_pos=[(300.0, 300.0), (100.0, 100.0)], ge_data=[2.0, 1.0])
+    nxt, _ = step(env, env.reset(), (0.0, -1.0))
+    assert float(nxt["state", "slot_data"][0].item()) == 0.0
+    assert progress(nxt) == pytest.approx(8 * 10 / 707, abs=1e-5)  # 0.11315
+    # the reward is the sum of its terms, the progress term included
+    total = sum(nxt["reward_terms", k] for k in nxt["reward_terms"].keys())
+    torch.testing.assert_close(nxt["reward"], total)
+
+
+def test_finishing_a_ge_pays_one_unit_less_the_jump_to_the_next():
+    # hover 5 m from a GE with 1 unit (SNR 0.01·0.36/125/1e-6 = 28.8, rate 4.9): emptied in one slot;
+    # Φ: -(5 + 1414)/707 -> -(|(100,100)-(300,305)| + 707)/707, |.| = sqrt(82025) = 286.40
+    env = env_with((300.0, 305.0), ge_pos=[(300.0, 300.0), (100.0, 100.0)], ge_data=[1.0, 1.0])
+    nxt, _ = step(env, env.reset(), (0.0, 0.0))
+    assert float(nxt["state", "slot_data"][0].item()) == pytest.approx(1.0)
+    want = 8 * (1419 - math.sqrt(82025) - 707) / 707  # 4.8158
+    assert progress(nxt) == pytest.approx(want, abs=1e-4)
+
+
+def test_after_the_last_ge_the_target_is_la():
+    # last GE emptied at (480,45): Φ -1 -> -d_LA/707 with d_LA = 45 - 25 = 20; then 10 m south: +8·10/707
+    env = env_with((480.0, 45.0), ge_pos=[(480.0, 45.0)], ge_data=[1.0])
+    nxt, td = step(env, env.reset(), (0.0, 0.0))
+    assert progress(nxt) == pytest.approx(8 * (1 - 20 / 707), abs=1e-4)  # 7.7737
+    nxt, _ = step(env, td, (0.0, -1.0))  # (480, 35): 10 m from LA
+    assert progress(nxt) == pytest.approx(8 * 10 / 707, abs=1e-5)
+
+
+def potential(state, i):
+    """Φ computed here from the raw state, independently of the env's code."""
+    p = state["position"][i]
+    left = state["ge_remaining"][i] > 0
+    if left.any():
+        d = min(float(torch.linalg.vector_norm(g - p)) for g, k in zip(state["ge_pos"][i], left) if k)
+    else:
+        x, y = float(p[0]), float(p[1])
+        d = math.hypot(max(475 - x, 0.0, x - 500), max(0.0 - y, 0.0, y - 25))
+    return -(d + 707 * int(left.sum())) / 707
+
+
+def test_progress_telescopes_over_an_episode():
+    # its sum is 8·(Φ(end) - Φ(start)): hovering or looping cannot farm it
+    cfg = {**SHAPED, "terminate_on_collision": False}
+    env = UAVEnv(cfg, batch_size=[3], seed=5)
+    td = env.reset()
+    phi0 = [potential(td["state"], i) for i in range(3)]
+    total = torch.zeros(3, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(40):
+        td["action"] = torch.rand(3, 2, generator=g) * 2 - 1
+        out = env.step(td)
+        total += out["next", "reward_terms", "progress"].squeeze(-1).double()
+        td = env.step_mdp(out)
+    assert not out["next", "done"].any()
+    want = [8 * (potential(td["state"], i) - phi0[i]) for i in range(3)]
+    torch.testing.assert_close(total, torch.tensor(want, dtype=torch.float64), atol=1e-3, rtol=0)
+
+
+def test_ego_columns_hand_values():
+    # DCU at (100,100); GEs (100,400) and (400,400): target vector (0,300) / the area's diagonal
+    # (500·sqrt 2 = 707.107), direction (0,1);
+    # BZ [130,90,200,200]: nearest point (130,100), vector (30,0)/50; NFZ [0,160,50,300]: nearest
+    # point (50,160), vector (-50,60), longer than 50, so saturated to length 50 then /50
+    env = env_with((100.0, 100.0), ge_pos=[(100.0, 400.0), (400.0, 400.0)], ge_data=[1.0, 1.0],
+                   bz=[(130.0, 90.0, 200.0, 200.0)], nfz=[(0.0, 160.0, 50.0, 300.0)])
+    obs = env.reset()["observation"][0]
+    n = math.hypot(50, 60)
+    want = [0.0, 300 / math.hypot(500, 500), 0.0, 1.0, 0.6, 0.0, -50 / n, 60 / n]
+    torch.testing.assert_close(obs[-8:], torch.tensor(want), atol=1e-5, rtol=0)
+
+
+def test_off_by_default_and_sizes():
+    plain = UAVEnv(batch_size=[2], seed=0)
+    # SPEC §6 + extras: 5·15 GE + 5·9 zone + 5·7 OU + 14 DCU + 6 extra = 175 columns
+    assert plain.layout.size == 175
+    td = plain.rollout(5, break_when_any_done=False)
+    assert (td["next", "reward_terms", "progress"] == 0).all()
+    assert UAVEnv(SHAPED, batch_size=[2], seed=0).layout.size == 183
+
+
+def test_env_shaped_group_composes():
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=sac", "env=shaped"])
+    ec = make_env_config(cfg.env)
+    assert ec.reward.progress_weight == 8.0 and ec.ego_features
+    assert ec.reward.sigma == make_env_config(None).reward.sigma  # the SPEC terms are untouched
+
+
+def test_progress_weight_must_be_nonnegative():
+    with pytest.raises(ValueError, match="progress_weight"):
+        make_env_config(reward={"progress_weight": -1.0})
