@@ -99,12 +99,13 @@ class SAC:
         # lerp are already one kernel call each, and more graphs mean more guard checks.
         self._loss_fn = compile_loss(self.loss, self.cfg.compile_simdlen) if self.cfg.compile else self.loss
         self._in_keys = list(self.loss.in_keys)
-        up = self.target_updater
-        for key, source in up._sources.items(True, True):
-            key = key if isinstance(key, tuple) else (key,)
+        # SoftUpdate(SACLoss) pairs the Q nets' parameters with their targets, leaf by leaf; the
+        # loss exposes both as public TensorDictParams with the same keys.
+        target = self.loss.target_qvalue_network_params
+        for key, source in self.loss.qvalue_network_params.items(True, True):
             self._sources.append(source.data)
-            self._targets.append(up._targets.get(("target_" + key[0], *key[1:])).data)
-        self._tau = 1.0 - up.eps  # SoftUpdate's own weight, bit for bit
+            self._targets.append(target.get(key).data)
+        self._tau = 1.0 - self.target_updater.eps  # SoftUpdate's own weight, bit for bit
 
     def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self._loss_fn(batch)
