@@ -191,6 +191,13 @@ class RewardConfig(_Strict):
     # the nearest GE with data, then LA. Its sum over an episode is Φ(end) − Φ(start), so no
     # loop or hover can farm it; w is about the reward of finishing one GE.
     progress_weight: float = Field(0.0, ge=0)
+    # distance to the target: straight line, or around BZs and NFZs on a grid of this cell size
+    # (uavlae.envs.geodesic; the fields are computed once per episode start)
+    progress_metric: Literal["euclidean", "geodesic"] = "euclidean"
+    progress_grid_cell: float = Field(10.0, gt=0, le=50.0)
+    # the geodesic way keeps this far from BZs and NFZs (cells whose centre is closer are
+    # blocked, except the cells of the targets themselves)
+    progress_clearance: float = Field(12.0, ge=0)
 
     @field_validator("sigma")
     @classmethod

@@ -17,14 +17,16 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.envs.geodesic import grid_shape
 from uavlae.envs.scenario import Scenario, sample_scenarios, stack_scenarios
 from uavlae.envs.world import (
     EVENT_KEYS,
     REWARD_KEYS,
-    STATE_KEYS,
+    GEO_KEY,
     ObservationLayout,
     draw_noise,
     initial_state,
+    state_keys,
     world_step_core,
 )
 
@@ -93,6 +95,7 @@ class UAVEnv(EnvBase):
             raise ValueError(f"UAVEnv needs a one-dimensional batch_size [B] with B >= 1, got {list(batch_size)}")
         super().__init__(device=device, batch_size=batch_size)
         self.layout = ObservationLayout(self.cfg)
+        self.raw_state_keys = state_keys(self.cfg)
         self.compiled = bool(compile_step)
         self._core = self._make_core(self.compiled)
         self._fixed: TensorDictBase | None = None
@@ -144,9 +147,12 @@ class UAVEnv(EnvBase):
             "ou_mask": (k,), "served_ge": (), "d_bz": (), "d_nfz": (), "d_rz": (), "d_ou": (),
             "d_boundary": (), "d_la": (),
         }
-        assert set(shapes) == set(STATE_KEYS)
+        if GEO_KEY in self.raw_state_keys:
+            h, w = grid_shape(self.cfg)
+            shapes[GEO_KEY] = (g + 1, h * w)
+        assert set(shapes) == set(self.raw_state_keys)
         state = {}
-        for key in STATE_KEYS:
+        for key in self.raw_state_keys:
             if key in _BOOL_STATE:
                 state[key] = flag(*shapes[key])
             elif key in _INT_STATE:
@@ -163,7 +169,7 @@ class UAVEnv(EnvBase):
             device=self.device,
         )
         # what a root coming from step_mdp must hold for maybe_reset's row-wise path
-        self._reset_keys_expected = ["observation", *(("state", k) for k in STATE_KEYS)]
+        self._reset_keys_expected = ["observation", *(("state", k) for k in self.raw_state_keys)]
         self.action_spec = Bounded(-1.0, 1.0, shape=(B, 2), dtype=f, device=self.device)
         self.reward_spec = u(1)
         self.done_spec = Composite(
@@ -252,7 +258,7 @@ class UAVEnv(EnvBase):
         (``observation`` and every ``("state", k)``), one row per scenario."""
         state = initial_state(scen.to_dict(), self.cfg)
         rows: dict[NestedKey, torch.Tensor] = {"observation": self.layout.build(state)}
-        rows.update({("state", k): state[k] for k in STATE_KEYS})
+        rows.update({("state", k): state[k] for k in self.raw_state_keys})
         return rows
 
     def _cached_initial_rows(self, scen: TensorDictBase) -> dict[NestedKey, torch.Tensor]:
@@ -356,7 +362,7 @@ class UAVEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         st = tensordict.get("state")
-        state = {k: st.get(k) for k in STATE_KEYS}
+        state = {k: st.get(k) for k in self.raw_state_keys}
         action = tensordict.get("action")
         nxt, events, terms, cost, reward, terminated, truncated, obs = self._core(
             state, action, draw_noise(state, self.cfg, self.rng)

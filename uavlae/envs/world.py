@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from uavlae.envs import geodesic as geo
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
 
@@ -24,6 +25,17 @@ DYNAMIC_KEYS = (
     "d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la",
 )
 STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
+GEO_KEY = "geo_field"  # [B, G + 1, H·W], only with reward.progress_metric = geodesic
+
+
+def uses_geodesic(cfg: EnvConfig) -> bool:
+    return cfg.reward.progress_metric == "geodesic" and (cfg.reward.progress_weight > 0 or cfg.ego_features)
+
+
+def state_keys(cfg: EnvConfig) -> tuple[str, ...]:
+    """The raw state entries of this configuration: ``STATE_KEYS``, plus ``geo_field`` when the
+    geodesic progress metric is in use."""
+    return STATE_KEYS + ((GEO_KEY,) if uses_geodesic(cfg) else ())
 EVENT_KEYS = (
     "bz_collision", "nfz_entry", "ou_collision", "boundary_exit", "rz_speeding", "landed",
     "energy_exhausted",
@@ -76,13 +88,18 @@ def current_target(state: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     return rel, torch.linalg.vector_norm(rel, dim=-1), n_left
 
 
-def progress_potential(state: dict[str, Tensor], d_tar: float) -> Tensor:
+def progress_potential(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     """Φ(s) = −(distance to the current target + d_tar · GEs with data left) / d_tar.
 
     Finishing a GE raises Φ by 1 minus the (≤ d_tar) jump to the next target, so Φ only
-    rises with real progress; the ``progress`` reward term is w·(Φ(s') − Φ(s)).
+    rises with real progress; the ``progress`` reward term is w·(Φ(s') − Φ(s)). The distance is
+    the straight line, or with ``progress_metric: geodesic`` the way around BZs and NFZs.
     """
-    _, d, n_left = current_target(state)
+    d_tar = cfg.reward.d_tar
+    if GEO_KEY in state:
+        d, _, n_left = geo.geodesic_target(state, cfg)
+    else:
+        _, d, n_left = current_target(state)
     return -(d + d_tar * n_left.to(d.dtype)) / d_tar
 
 
@@ -127,6 +144,8 @@ def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
         "served_ge": torch.full((b,), -1, device=device, dtype=torch.int64),
     }
     state.update(nearest_distances(state, cfg))
+    if uses_geodesic(cfg):
+        state[GEO_KEY] = geo.distance_fields(state, cfg)
     return state
 
 
@@ -189,6 +208,8 @@ def world_step_core(
     data_collected = state["data_collected"] + td
 
     nxt = {k: state[k] for k in STATIC_KEYS}
+    if GEO_KEY in state:
+        nxt[GEO_KEY] = state[GEO_KEY]
     nxt.update(
         position=p1, velocity=v, energy_used=energy_used, energy_left=energy_left, slot_data=td,
         data_collected=data_collected, step=state["step"] + 1, ge_remaining=remaining,
@@ -220,8 +241,7 @@ def world_step_core(
     )
     w = cfg.reward.progress_weight
     if w > 0:  # static: the branch costs nothing when the term is off
-        d_tar = cfg.reward.d_tar
-        terms["progress"] = w * (progress_potential(nxt, d_tar) - progress_potential(state, d_tar))
+        terms["progress"] = w * (progress_potential(nxt, cfg) - progress_potential(state, cfg))
     else:
         terms["progress"] = torch.zeros_like(energy_left)
     cost = ph.cost(events, cfg.cost)
@@ -312,8 +332,12 @@ class ObservationLayout:
                 (s["d_rz"] <= 0).to(p.dtype).unsqueeze(-1),
             ]
         if self.ego:
-            rel, d, _ = current_target(s)
-            unit = rel / d.clamp_min(1e-6).unsqueeze(-1)
+            if GEO_KEY in s:  # the way to go around BZs and NFZs, times the length of that way
+                d, unit, _ = geo.geodesic_target(s, cfg)
+                rel = unit * d.clamp_max(cfg.reward.d_tar).unsqueeze(-1)
+            else:
+                rel, d, _ = current_target(s)
+                unit = rel / d.clamp_min(1e-6).unsqueeze(-1)
             scale = cfg.obs_distance_scale
             parts += [rel, unit]
             for name in ("bz", "nfz"):
