@@ -51,6 +51,11 @@ bench-env: $(STAMP)
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 
+# What copying the ego direction column earns with no learning -> benchmarks/follow_direction.json
+.PHONY: bench-follow
+bench-follow: $(STAMP)
+	$(BIN)/python benchmarks/follow_direction.py
+
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun
 
@@ -66,6 +71,8 @@ paper-table: $(STAMP)
 # Time to target, our SAC vs Stable-Baselines3's (the `bench` extra) -> benchmarks/time_to_target.json
 # TTT_ARGS adds options, e.g. the many-scenarios regime of benchmarks/time_to_target.md:
 #   make bench-ttt TTT_CAP_MIN=9 TTT_ARGS="--env-batch 64 --utd 0.25 --out benchmarks/time_to_target_b64_utd025.json"
+# or the issue's 30 minutes on the world with the learning aids (one method per run, as recorded):
+#   make bench-ttt TTT_CAP_MIN=30 TTT_ARGS="--env shaped_geodesic --env-batch 64 --utd 0.25 --methods uavlae_sac"
 .PHONY: bench-ttt
 TTT_CAP_MIN ?= 15
 TTT_ARGS ?=
