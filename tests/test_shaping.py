@@ -199,3 +199,17 @@ def test_following_the_geodesic_direction_never_enters_a_zone():
             break
         td = env.step_mdp(out)
     assert entered == 0
+
+
+def test_geodesic_step_compiles_and_agrees_with_eager():
+    eager = UAVEnv(GEO, batch_size=[4], seed=0)
+    comp = UAVEnv(GEO, batch_size=[4], seed=0, compile_step=True)
+    a, b = eager.reset(), comp.reset()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(4):
+        act = torch.rand(4, 2, generator=g) * 2 - 1
+        a["action"], b["action"] = act, act.clone()
+        oa, a = eager.step_and_maybe_reset(a)
+        ob, b = comp.step_and_maybe_reset(b)
+        torch.testing.assert_close(ob["next", "observation"], oa["next", "observation"], atol=1e-5, rtol=0)
+        torch.testing.assert_close(ob["next", "reward"], oa["next", "reward"], atol=1e-5, rtol=0)
