@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
 
 _BIG = 1.0e6  # stands for "unreachable" after the fill of blocked cells (finite: no inf·0)
@@ -44,19 +44,22 @@ def _neighbour_min(f: Tensor, dim: int, out: Tensor) -> Tensor:
     return out
 
 
+def _relax_step(f: Tensor, c: float, row: Tensor, col: Tensor, dia: Tensor) -> Tensor:
+    """min(f, f(neighbour) + step length) over the 8 neighbours (``row``/``col``/``dia``: scratch)."""
+    _neighbour_min(f, -1, row)  # west / east neighbours
+    _neighbour_min(f, -2, col)  # south / north
+    _neighbour_min(row, -2, dia)  # the four diagonal neighbours
+    torch.minimum(row, col, out=row)
+    f = torch.minimum(f, row.add_(c))
+    return torch.minimum(f, dia.add_(c * math.sqrt(2.0)))
+
+
 def _relax_chunk(f: Tensor, blocked: Tensor, c: float, max_iters: int) -> Tensor:
     f = f.masked_fill(blocked, math.inf)
-    diag = c * math.sqrt(2.0)
-    row, col, dia = torch.empty_like(f), torch.empty_like(f), torch.empty_like(f)
+    scratch = torch.empty_like(f), torch.empty_like(f), torch.empty_like(f)
     for it in range(max_iters):
         prev = f.clone() if it % 8 == 7 else None
-        _neighbour_min(f, -1, row)  # west / east neighbours
-        _neighbour_min(f, -2, col)  # south / north
-        _neighbour_min(row, -2, dia)  # the four diagonal neighbours
-        torch.minimum(row, col, out=row)
-        f = torch.minimum(f, row.add_(c))
-        f = torch.minimum(f, dia.add_(diag))
-        f.masked_fill_(blocked, math.inf)
+        f = _relax_step(f, c, *scratch).masked_fill_(blocked, math.inf)
         if prev is not None and torch.equal(prev, f):
             break
     return f
@@ -79,16 +82,9 @@ def _fill_blocked(f: Tensor, c: float, rounds: int = 2) -> Tensor:
     step, two cells deep, then ``_BIG``: the interpolation next to a wall stays finite, and the
     fill cannot reach across a zone (at least 50 m wide) to a lower value on its far side,
     which would point the way through it."""
+    scratch = torch.empty_like(f), torch.empty_like(f), torch.empty_like(f)
     for _ in range(rounds):
-        p = F.pad(f.unsqueeze(1), (1, 1, 1, 1), value=math.inf).squeeze(1)
-        h, w = f.shape[-2:]
-        best = f
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if dy or dx:
-                    step = c * math.sqrt(2.0) if dy and dx else c
-                    best = torch.minimum(best, p[:, 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] + step)
-        f = best
+        f = _relax_step(f, c, *scratch)  # free cells already hold their minimum: only blocked ones change
     return torch.nan_to_num(f, posinf=_BIG).clamp_max(_BIG)
 
 
@@ -101,17 +97,13 @@ def distance_fields(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     c = cfg.reward.progress_grid_cell
     h, w = grid_shape(cfg)
     ys, xs = _centres(cfg, device, dtype)
-    cy, cx = ys.view(1, h, 1), xs.view(1, 1, w)
+    cells = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1).view(1, h * w, 2)  # row-major (y, x)
     # blocked: the centre is within progress_clearance of a BZ or an NFZ
-    blocked = torch.zeros(b, h, w, dtype=torch.bool, device=device)
-    m_c = cfg.reward.progress_clearance
+    blocked = torch.zeros(b, h * w, dtype=torch.bool, device=device)
     for name in ("bz", "nfz"):
-        r, m = state[name], state[name + "_mask"]
-        for j in range(r.shape[1]):
-            rj = r[:, j].view(b, 4, 1, 1)
-            ddx = torch.maximum(rj[:, 0] - cx, cx - rj[:, 2]).clamp_min(0.0)
-            ddy = torch.maximum(rj[:, 1] - cy, cy - rj[:, 3]).clamp_min(0.0)
-            blocked |= (torch.hypot(ddx, ddy) <= m_c) & m[:, j].view(b, 1, 1)
+        d = ph.point_rect_distance(cells, state[name].unsqueeze(1), state[name + "_mask"].unsqueeze(1))
+        blocked |= (d <= cfg.reward.progress_clearance).any(-1)
+    blocked = blocked.view(b, h, w)
     # sources: the cell holding each GE (its distance to the centre); LA: the cells whose centre is
     # within one cell of the LA rectangle (their distance to it)
     src = torch.full((b, g + 1, h, w), math.inf, device=device, dtype=dtype)
@@ -121,10 +113,8 @@ def distance_fields(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     bi = torch.arange(b, device=device).unsqueeze(-1).expand(b, g)
     gi = torch.arange(g, device=device).unsqueeze(0).expand(b, g)
     src[bi[ge_mask], gi[ge_mask], iy[ge_mask], ix[ge_mask]] = d0[ge_mask]
-    la = state["landing"].view(b, 4, 1, 1)
-    dx = torch.maximum(la[:, 0] - cx, cx - la[:, 2]).clamp_min(0.0)
-    dy = torch.maximum(la[:, 1] - cy, cy - la[:, 3]).clamp_min(0.0)
-    d_la = torch.hypot(dx, dy)
+    la = state["landing"].view(b, 1, 1, 4)
+    d_la = ph.point_rect_distance(cells, la, torch.ones(b, 1, 1, dtype=torch.bool, device=device)).view(b, h, w)
     src[:, g] = torch.where(d_la <= c, d_la, torch.full_like(d_la, math.inf))
     # a target's own cells are always free (a GE may lie closer to a zone than the clearance)
     free = ~blocked.unsqueeze(1) | src.isfinite()
@@ -167,15 +157,6 @@ def geodesic_lookup(field: Tensor, p: Tensor, cfg: EnvConfig) -> tuple[Tensor, T
     return val, torch.stack((gx, gy), dim=-1)
 
 
-def _rect_distance(pts: Tensor, rects: Tensor) -> Tensor:
-    """Distance from each of ``pts`` [B, P, 2] to each of ``rects`` [B, R, 4]: [B, P, R]."""
-    x, y = pts[..., 0:1], pts[..., 1:2]
-    r = rects.unsqueeze(1)
-    dx = torch.maximum(r[..., 0] - x, x - r[..., 2]).clamp_min(0.0)
-    dy = torch.maximum(r[..., 1] - y, y - r[..., 3]).clamp_min(0.0)
-    return torch.hypot(dx, dy)
-
-
 def _cell_steps(cfg: EnvConfig, device) -> tuple[Tensor, Tensor]:
     """The 3 x 3 neighbourhood as (dy, dx) offsets, the centre first."""
     d = torch.tensor([(0, 0)] + [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx], device=device)
@@ -216,19 +197,14 @@ def geodesic_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, T
     centres = torch.stack(((nx.to(p.dtype) + 0.5) * c, (ny.to(p.dtype) + 0.5) * c), dim=-1)  # [B, 9, 2]
     # the target point: the GE, or the nearest point of LA
     rel_ge = torch.gather(state["ge_pos"], 1, near.view(b, 1, 1).expand(b, 1, 2)).squeeze(1) - p if g > 0 else torch.zeros_like(p)
-    la = state["landing"]
-    rel_la = torch.stack(
-        (p[..., 0].clamp(la[..., 0], la[..., 2]), p[..., 1].clamp(la[..., 1], la[..., 3])), dim=-1
-    ) - p
+    rel_la = ph.nearest_point_in_rects(p, state["landing"].unsqueeze(-2)).squeeze(-2) - p
     rel_target = torch.where((n_left > 0).unsqueeze(-1), rel_ge, rel_la)
     # A DCU that came within the clearance heads for the lowest *free* cell around it: the
     # values of blocked cells are only a fill, and following them can cut a zone's corner.
     blocked = torch.zeros_like(inside)
     for name in ("bz", "nfz"):
-        r, m = state[name], state[name + "_mask"]
-        if r.shape[1]:
-            blocked |= (_rect_distance(centres, r) <= cfg.reward.progress_clearance).masked_fill(
-                ~m.unsqueeze(1), False).any(-1)
+        dz = ph.point_rect_distance(centres, state[name].unsqueeze(1), state[name + "_mask"].unsqueeze(1))
+        blocked |= (dz <= cfg.reward.progress_clearance).any(-1)
     near_target = torch.linalg.vector_norm(centres - (p + rel_target).unsqueeze(1), dim=-1) <= c
     blocked &= ~near_target
     nb_free = nb.masked_fill(blocked, math.inf)

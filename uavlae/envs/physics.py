@@ -163,6 +163,12 @@ def point_in_rects(p: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
     return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1) & mask
 
 
+def nearest_point_in_rects(p: Tensor, rects: Tensor) -> Tensor:
+    # the point of each closed rectangle nearest to p: p clamped into it ([..., R, 2] for [..., R, 4])
+    lo, hi = rects[..., :2], rects[..., 2:]
+    return torch.minimum(torch.maximum(p.unsqueeze(-2), lo), hi)
+
+
 def point_rect_distance(p: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
     # SPEC §7: d = |(max(x0-x, 0, x-x1), max(y0-y, 0, y-y1))|, 0 inside, +inf where absent
     x, y = p[..., 0:1], p[..., 1:2]

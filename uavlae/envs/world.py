@@ -80,10 +80,7 @@ def current_target(state: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
         rel_near = torch.gather(rel_ge, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
     else:
         rel_near = torch.zeros_like(p)
-    la = state["landing"]
-    rel_la = torch.stack(
-        (p[..., 0].clamp(la[..., 0], la[..., 2]), p[..., 1].clamp(la[..., 1], la[..., 3])), dim=-1
-    ) - p
+    rel_la = ph.nearest_point_in_rects(p, state["landing"].unsqueeze(-2)).squeeze(-2) - p
     rel = torch.where((n_left > 0).unsqueeze(-1), rel_near, rel_la)
     return rel, torch.linalg.vector_norm(rel, dim=-1), n_left
 
@@ -108,8 +105,7 @@ def nearest_rect_vector(p: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
     when none is present)."""
     if rects.shape[-2] == 0:
         return torch.zeros_like(p)
-    lo, hi = rects[..., :2], rects[..., 2:]
-    vec = torch.minimum(torch.maximum(p.unsqueeze(-2), lo), hi) - p.unsqueeze(-2)
+    vec = ph.nearest_point_in_rects(p, rects) - p.unsqueeze(-2)
     d = torch.linalg.vector_norm(vec, dim=-1).masked_fill(~mask, float("inf"))
     near = d.argmin(-1, keepdim=True)
     out = torch.gather(vec, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
