@@ -3,10 +3,11 @@
 Used by the opt-in progress reward with ``reward.progress_metric: geodesic`` and its ego-centric
 direction column ([decision] beyond the paper, ``env=shaped_geodesic``). For every scenario and
 every target (each GE, then LA) the distance from each cell centre of a regular grid to the
-target, moving between the 8 neighbouring cells and never through a cell whose centre lies in a
-BZ or NFZ, is computed once when the scenario's episode starts (batched Bellman-Ford
-relaxation). A step then only reads the four cell centres around the DCU and interpolates
-bilinearly, so the per-step cost is a gather.
+target, moving between the 8 neighbouring cells and never through a cell whose centre lies within
+``progress_clearance`` of a BZ or NFZ, is computed once when the scenario's episode starts
+(batched Bellman-Ford relaxation). A step then only reads the four cell centres around the DCU
+(the distance, interpolated bilinearly) and, for the direction column, the nine cells around
+it, so the per-step cost is a few gathers.
 """
 
 from __future__ import annotations
@@ -142,39 +143,29 @@ def _corners(p: Tensor, cfg: EnvConfig) -> tuple[Tensor, Tensor, Tensor]:
     return idx, tx, ty
 
 
-def geodesic_lookup(field: Tensor, p: Tensor, cfg: EnvConfig) -> tuple[Tensor, Tensor]:
-    """Bilinear value ``[B, T]`` and gradient ``[B, T, 2]`` (per metre) of each of the ``T``
-    fields of every row at its position ``p``."""
-    c = cfg.reward.progress_grid_cell
+def geodesic_lookup(field: Tensor, p: Tensor, cfg: EnvConfig) -> Tensor:
+    """Bilinear value ``[B, T]`` of each of the ``T`` fields of every row at its position ``p``."""
     idx, tx, ty = _corners(p, cfg)
     b, t, _ = field.shape
     v = torch.gather(field, 2, idx.unsqueeze(1).expand(b, t, 4))
     f00, f10, f01, f11 = v.unbind(-1)
     tx, ty = tx.unsqueeze(-1), ty.unsqueeze(-1)
-    val = (1 - ty) * ((1 - tx) * f00 + tx * f10) + ty * ((1 - tx) * f01 + tx * f11)
-    gx = ((1 - ty) * (f10 - f00) + ty * (f11 - f01)) / c
-    gy = ((1 - tx) * (f01 - f00) + tx * (f11 - f10)) / c
-    return val, torch.stack((gx, gy), dim=-1)
+    return (1 - ty) * ((1 - tx) * f00 + tx * f10) + ty * ((1 - tx) * f01 + tx * f11)
 
 
-def _cell_steps(cfg: EnvConfig, device) -> tuple[Tensor, Tensor]:
+def _cell_steps(device) -> tuple[Tensor, Tensor]:
     """The 3 x 3 neighbourhood as (dy, dx) offsets, the centre first."""
     d = torch.tensor([(0, 0)] + [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx], device=device)
     return d[:, 0], d[:, 1]
 
 
-def geodesic_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, Tensor, Tensor]:
-    """``(geodesic distance to the current target, unit direction of the way there, GEs with
-    data left)``; the target is the geodesically nearest GE with data, else LA.
-
-    The distance is the bilinear reading of the target's field, at most ``2 d_tar`` (a target the
-    grid cannot reach reads as far, not as infinitely far). The direction points from the DCU
-    to the centre of the lowest of the 9 cells around it, or straight at the target when the
-    DCU's own cell is the lowest (it is there): it follows the grid's way, which keeps
-    ``progress_clearance`` from BZs and NFZs.
-    """
+def _pick_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(geodesic distance to the current target, the target's field index, the geodesically
+    nearest GE with data, GEs with data left)``: the target is that GE, else LA (the last field).
+    The distance is at most ``2 d_tar`` (a target the grid cannot reach reads as far, not as
+    infinitely far)."""
     field, p = state["geo_field"], state["position"]
-    val, _ = geodesic_lookup(field, p, cfg)
+    val = geodesic_lookup(field, p, cfg)
     b, t, _ = field.shape
     g = t - 1
     has = state["ge_remaining"] > 0
@@ -183,17 +174,36 @@ def geodesic_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, T
     near = d_ge.argmin(-1) if g > 0 else torch.zeros(b, dtype=torch.long, device=p.device)
     pick = torch.where(n_left > 0, near, torch.full_like(near, g))
     d = torch.gather(val, 1, pick.unsqueeze(-1)).squeeze(-1).clamp_max(2.0 * cfg.reward.d_tar)
+    return d, pick, near, n_left
+
+
+def geodesic_distance(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, Tensor]:
+    """``(geodesic distance to the current target, GEs with data left)``, see ``_pick_target``."""
+    d, _, _, n_left = _pick_target(state, cfg)
+    return d, n_left
+
+
+def geodesic_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """``(geodesic distance to the current target, unit direction of the way there, GEs with
+    data left)``; the target is the geodesically nearest GE with data, else LA.
+
+    The direction points from the DCU to the centre of the lowest of the 9 cells around it, or
+    straight at the target when the DCU's own cell is the lowest (it is there): it follows the
+    grid's way, which keeps ``progress_clearance`` from BZs and NFZs.
+    """
+    field, p = state["geo_field"], state["position"]
+    d, pick, near, n_left = _pick_target(state, cfg)
+    b, g = field.shape[0], field.shape[1] - 1
     # the 9 cells around the DCU's cell in the picked field
     c = cfg.reward.progress_grid_cell
     h, w = grid_shape(cfg)
     iy = (p[:, 1] / c).floor().long().clamp(0, h - 1)
     ix = (p[:, 0] / c).floor().long().clamp(0, w - 1)
-    sy, sx = _cell_steps(cfg, p.device)
+    sy, sx = _cell_steps(p.device)
     ny, nx = iy.unsqueeze(-1) + sy, ix.unsqueeze(-1) + sx  # [B, 9]
     inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
     flat = (ny.clamp(0, h - 1) * w + nx.clamp(0, w - 1))
-    f_pick = torch.gather(field, 1, pick.view(b, 1, 1).expand(b, 1, field.shape[-1])).squeeze(1)
-    nb = torch.gather(f_pick, 1, flat).masked_fill(~inside, math.inf)
+    nb = field.reshape(b, -1).gather(1, pick.unsqueeze(-1) * field.shape[-1] + flat).masked_fill(~inside, math.inf)
     centres = torch.stack(((nx.to(p.dtype) + 0.5) * c, (ny.to(p.dtype) + 0.5) * c), dim=-1)  # [B, 9, 2]
     # the target point: the GE, or the nearest point of LA
     rel_ge = torch.gather(state["ge_pos"], 1, near.view(b, 1, 1).expand(b, 1, 2)).squeeze(1) - p if g > 0 else torch.zeros_like(p)

@@ -36,6 +36,8 @@ def state_keys(cfg: EnvConfig) -> tuple[str, ...]:
     """The raw state entries of this configuration: ``STATE_KEYS``, plus ``geo_field`` when the
     geodesic progress metric is in use."""
     return STATE_KEYS + ((GEO_KEY,) if uses_geodesic(cfg) else ())
+
+
 EVENT_KEYS = (
     "bz_collision", "nfz_entry", "ou_collision", "boundary_exit", "rz_speeding", "landed",
     "energy_exhausted",
@@ -94,7 +96,7 @@ def progress_potential(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     """
     d_tar = cfg.reward.d_tar
     if GEO_KEY in state:
-        d, _, n_left = geo.geodesic_target(state, cfg)
+        d, n_left = geo.geodesic_distance(state, cfg)  # the direction is not needed here
     else:
         _, d, n_left = current_target(state)
     return -(d + d_tar * n_left.to(d.dtype)) / d_tar
