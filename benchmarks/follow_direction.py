@@ -4,7 +4,8 @@
 
 on the 32 saved evaluation scenarios of ``results/paper_table_eval_set.json`` with ``env=shaped``
 (straight-line direction) and ``env=shaped_geodesic`` (the way around BZs and NFZs), through the
-same ``uavlae.evaluate.Evaluator`` as every learner; writes ``follow_direction.json``.
+same ``uavlae.evaluate.Evaluator`` as every learner, and times the one-off geodesic distance fields
+(256 scenarios at once, as when ``UAVEnv`` fills its pool); writes ``follow_direction.json``.
 """
 
 from __future__ import annotations
@@ -43,6 +44,16 @@ def main() -> None:
         row = {k: round(float(agg[k]), 4) for k in ("DCR", "CR", "SLR", "RVR", "ECR")}
         out["results"][env] = row
         print(env, row, flush=True)
+    # the one-off cost of the geodesic distance fields, per scenario, at a pool fill of 256
+    from uavlae.envs.scenario import sample_scenarios
+    from uavlae.envs.world import initial_state
+
+    cfg = env_config("shaped_geodesic")
+    pool = sample_scenarios(cfg, 256, torch.Generator().manual_seed(0)).to_dict()
+    t = time.perf_counter()
+    initial_state(pool, cfg)
+    out["geodesic_fields_ms_per_scenario_at_256"] = round((time.perf_counter() - t) / 256 * 1e3, 2)
+    print("geodesic fields:", out["geodesic_fields_ms_per_scenario_at_256"], "ms per scenario (256 at once)")
     (ROOT / "benchmarks" / "follow_direction.json").write_text(json.dumps(out, indent=1) + "\n")
 
 
