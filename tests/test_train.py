@@ -83,13 +83,13 @@ def test_exp_trains_end_to_end(tmp_path, exp):
 
 
 def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
-    # trainer.compile_env / algo.compile: the configuration a long run uses, through the whole loop
+    # trainer.compile_env / algo.compile (of torchrl's SACLoss) through the whole loop
     import uavlae.train as tr
 
     made = []
     real = tr.make_env
     monkeypatch.setattr(tr, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
-    final = _run("sac", tmp_path / "c", "trainer.compile_env=true", "algo.compile=true")
+    final = _run("sac", tmp_path / "c", "trainer.compile_env=true", "algo.loss_impl=torchrl", "algo.compile=true")
     _check_run_outputs(tmp_path / "c", final)
     assert final["updates"] > 0 and len(made) == 1 and made[0].compiled
 

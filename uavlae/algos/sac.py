@@ -6,7 +6,12 @@ SPEC.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.9
 ``"observation"``, ``"action"``, ``("next", "observation")``, ``("next", "reward")``,
 ``("next", "done")``, ``("next", "terminated")`` and does one gradient step on actor, both Q
 nets and log(alpha) (one fused Adam, a parameter group each), then one soft update of the target
-Q nets (one ``torch._foreach_lerp_``). Speed and its measurement: benchmarks/sac_update_speed.md.
+Q nets (one ``torch._foreach_lerp_``).
+
+The gradients come from ``SACLoss`` itself (``loss_impl: torchrl``: its forward, then autograd)
+or, by default, from :class:`uavlae.algos.sac_fused.FusedSACGrad` (``loss_impl: fused``): the
+same losses and gradients of the same parameters, written out as plain tensor ops, ~3x the
+updates/s on one CPU thread. Speed and its measurement: benchmarks/sac_update_speed.md.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor
@@ -23,12 +28,15 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from uavlae.algos.common import (
     StrictConfig,
+    apply_gradients,
+    fused_adam_step,
     load_parts_state_dict,
     optimiser_step,
     parse_config,
     parts_state_dict,
     to_floats,
 )
+from uavlae.algos.sac_fused import FusedSACGrad
 from uavlae.policies.networks import Activation, action_bounds, make_q_critic, make_sac_actor
 
 
@@ -46,9 +54,11 @@ class SACConfig(StrictConfig):
     num_qvalue_nets: int = Field(2, ge=1)
     loss_function: Literal["l2", "smooth_l1", "l1"] = "l2"
     max_grad_norm: float | None = Field(None, gt=0)  # None: no clipping
-    # torch.compile the loss: ~1.9x the eager updates/s after a one-off ~10-25 s compile, so worth
-    # it from a few thousand updates on (benchmarks/sac_update_speed.md); off by default so tests
-    # and smoke runs do not pay the compile.
+    # fused: SACLoss's gradients written out by hand (sac_fused.py; same maths, tested against
+    # autograd through SACLoss); torchrl: SACLoss's forward and autograd (the reference).
+    loss_impl: Literal["fused", "torchrl"] = "fused"
+    # torch.compile SACLoss (loss_impl torchrl only): ~1.9x its eager updates/s after a one-off
+    # ~10-25 s compile, still slower than the eager fused update (benchmarks/sac_update_speed.md).
     compile: bool = False
     compile_simdlen: int | None = Field(128, gt=0)  # inductor CPU vector bits; see compile_loss
     # Read by the collector / training loop, not by update():
@@ -56,6 +66,16 @@ class SACConfig(StrictConfig):
     buffer_size: int = Field(1_000_000, ge=1)
     init_random_frames: int = Field(5_000, ge=0)  # uniform-random actions before learning
     utd_ratio: float = Field(1.0, gt=0)  # gradient steps per collected env frame
+
+
+    @model_validator(mode="after")
+    def _compile_needs_torchrl(self) -> SACConfig:
+        if self.compile and self.loss_impl != "torchrl":
+            raise ValueError(
+                "algo.compile compiles torchrl's SACLoss and needs algo.loss_impl=torchrl; the default "
+                "fused update is faster uncompiled (benchmarks/sac_update_speed.md)"
+            )
+        return self
 
 
 def make_sac_config(cfg: Any = None, **overrides: Any) -> SACConfig:
@@ -92,6 +112,8 @@ class SAC:
     _sources: list = field(default_factory=list, repr=False)
     _targets: list = field(default_factory=list, repr=False)
     _tau: float = field(default=0.0, repr=False)
+    _fused: FusedSACGrad | None = field(default=None, repr=False)
+    _group_index: list = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         # Only the loss is compiled. Compiling the whole update too (backward, Adam, the target
@@ -106,11 +128,28 @@ class SAC:
             self._sources.append(source.data)
             self._targets.append(target.get(key).data)
         self._tau = 1.0 - self.target_updater.eps  # SoftUpdate's own weight, bit for bit
+        if self.cfg.loss_impl == "fused":
+            self._fused = FusedSACGrad(self.loss, self.cfg.activation)
+            order = {id(p): i for i, p in enumerate(self._fused.params)}
+            groups = self.optimisers["sac"].param_groups
+            if sorted(order) != sorted(id(p) for g in groups for p in g["params"]):
+                raise RuntimeError("the optimiser's parameters are not the loss's")  # make_sac bug
+            self._group_index = [[order[id(p)] for p in g["params"]] for g in groups]
 
     def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        out = self._loss_fn(batch)
-        total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-        norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
+        if self._fused is not None:
+            out, grads = self._fused.grads(batch)
+            opt = self.optimisers["sac"]
+            if self.cfg.max_grad_norm is None and fused_adam_step(opt, grads, self._group_index):
+                norms = {}
+            else:
+                for p, g in zip(self._fused.params, grads):
+                    p.grad = g
+                norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
+        else:
+            out = self._loss_fn(batch)
+            total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+            norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
         with torch.no_grad():
             # SoftUpdate: target <- target + tau (source - target), every pair in one call
             torch._foreach_lerp_(self._targets, self._sources, self._tau)
@@ -122,7 +161,7 @@ class SAC:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""
         # A fixed set of keys: the loss writes "td_error" into its input, and a compiled loss
         # would recompile on every new key structure. The caller's batch is left untouched.
-        out = self._step(batch.select(*self._in_keys))
+        out = self._step(batch if self._fused is not None else batch.select(*self._in_keys))
         self.num_updates += 1
         logs = to_floats(out)
         logs["num_updates"] = float(self.num_updates)
