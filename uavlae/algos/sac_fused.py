@@ -155,27 +155,21 @@ class FusedSACGrad:
                 "scale": scale, "pre_scale": pre_scale, "inputs": inputs, "pre": pre}  # fmt: skip
 
     def _q_first(self, obs: torch.Tensor, layers: Layers) -> torch.Tensor:
-        """``W1_obs obs + b1`` for every Q net at once: ``[N, n_q * hidden]``."""
+        """``W1_obs obs + b1`` for every Q net at once: ``[n_q, N, hidden]``."""
         w, b = layers[0]
-        n, h = w.shape[0], w.shape[1]
-        return torch.addmm(b.reshape(n * h), obs, w[..., : self.obs_dim].reshape(n * h, self.obs_dim).t())
+        return torch.baddbmm(b.unsqueeze(1), obs.expand(w.shape[0], -1, -1), w[..., : self.obs_dim].transpose(1, 2))
 
     def _q(self, first: torch.Tensor, act: torch.Tensor, layers: Layers) -> tuple[torch.Tensor, list, list]:
-        """Q values ``[n_q, N, 1]``, each layer's input ``[n_q, N, .]``, each pre-activation."""
+        """Q values ``[n_q, N, 1]``, each layer's input ``[n_q, N, .]``, each pre-activation
+        (all contiguous: the element-wise kernels run on dense memory)."""
         w, _ = layers[0]
-        n, h = w.shape[0], w.shape[1]
-        z = torch.addmm(first, act, w[..., self.obs_dim :].reshape(n * h, -1).t())  # [N, n*h]
-        pre = [z.view(-1, n, h).transpose(0, 1)]
-        x = self.act(z).view(-1, n, h).transpose(0, 1)  # [n, N, h]
-        inputs = [x]
-        last = len(layers) - 1
-        for i in range(1, len(layers)):
-            w_i, b_i = layers[i]
+        z = torch.baddbmm(first, act.expand(w.shape[0], -1, -1), w[..., self.obs_dim :].transpose(1, 2))
+        pre, inputs = [], []
+        for w_i, b_i in layers[1:]:
+            pre.append(z)
+            x = self.act(z)
+            inputs.append(x)
             z = torch.baddbmm(b_i.unsqueeze(1), x, w_i.transpose(1, 2))
-            if i < last:
-                pre.append(z)
-                x = self.act(z)
-                inputs.append(x)
         return z, inputs, pre
 
     # -- backward pieces ------------------------------------------------------------------
@@ -234,8 +228,8 @@ class FusedSACGrad:
             loss_q = torch.where(ad < 1.0, 0.5 * diff.square(), ad - 0.5).sum(0).mean()
             g_q = diff.clamp(-1.0, 1.0) * inv_n
         q_grads, g_z1 = self._q_back(g_q.unsqueeze(-1), self.q_layers, q_in, q_pre, weights=True)
-        g_z1_flat = g_z1.transpose(0, 1).reshape(n_obs, n_q * hid)
-        g_w1 = torch.cat([g_z1_flat.t() @ obs, g_z1_flat.t() @ act], dim=1).view_as(w1)
+        g_z1_t = g_z1.transpose(1, 2)  # [n, h, N]
+        g_w1 = torch.cat([torch.bmm(g_z1_t, obs.expand(n_q, -1, -1)), torch.bmm(g_z1_t, act.expand(n_q, -1, -1))], dim=2)
         q_grads += [g_z1.sum(1), g_w1]
 
         # actor: a fresh action through the (detached) Q nets, then through the actor
