@@ -2,17 +2,20 @@
 
 Measures, side by side in one run (STYLE.md rule 10), on the same replay-shaped batch:
 
-- ``uavlae_eager``: :func:`uavlae.algos.sac.make_sac` as shipped (torchrl ``SACLoss``, twin Q
-  under vmap, one fused Adam with three parameter groups, the target lerp in one foreach call),
-  ``update(batch)`` including the log ``.item()``s;
-- ``uavlae_compiled``: the same with ``compile: true`` (``torch.compile`` of the loss, inductor
+- ``uavlae_fused``: :func:`uavlae.algos.sac.make_sac` as shipped (``loss_impl: fused``: SACLoss's
+  gradients written out by hand, ``uavlae.algos.sac_fused``; the fused Adam kernel called
+  directly; the target lerp in one foreach call), ``update(batch)`` including the log
+  ``.item()``s;
+- ``torchrl_eager``: ``loss_impl: torchrl`` (torchrl ``SACLoss`` forward, twin Q under vmap,
+  autograd, one fused Adam with three parameter groups), the reference implementation;
+- ``torchrl_compiled``: the same with ``compile: true`` (``torch.compile`` of the loss, inductor
   CPU vectors of ``compile_simdlen: 128`` bits, see ``uavlae.algos.sac.compile_loss``);
 - ``compiled_simd_auto``: the same with ``compile_simdlen: null`` (inductor picks, 256-bit on
   AVX2): isolates what the vector width is worth;
-- ``compiled_whole_update``: loss, backward, Adam step and target lerp as one compiled function
-  (dynamo's ``trace_autograd_ops``, foreach capturable Adam, 128-bit vectors): the alternative
-  of compiling more than the loss;
-- ``compiled_skip_guards``: ``uavlae_compiled`` run under
+- ``compiled_whole_update``: SACLoss, backward, Adam step and target lerp as one compiled
+  function (dynamo's ``trace_autograd_ops``, foreach capturable Adam, 128-bit vectors): the
+  alternative of compiling more than the loss;
+- ``compiled_skip_guards``: ``torchrl_compiled`` run under
   ``torch.compiler.set_stance(skip_guard_eval_unsafe=True)`` after warm-up: NOT offered by the
   learner (unsafe: a changed module or batch would silently reuse a stale graph); measured
   only to price dynamo's guard evaluation;
@@ -28,7 +31,7 @@ them alike; the load average before and after is recorded with the machine.
 
     .venv/bin/python benchmarks/sac_update_speed.py            # writes sac_update_speed.json
     .venv/bin/python benchmarks/sac_update_speed.py --out benchmarks/sac_update_speed_variants.json \
-        --compiled uavlae_compiled,compiled_simd_auto,compiled_whole_update,compiled_skip_guards
+        --compiled torchrl_compiled,compiled_simd_auto,compiled_whole_update,compiled_skip_guards
 """
 
 from __future__ import annotations
@@ -140,7 +143,7 @@ class ReferenceSAC:
 
 def compiled_skip_guards(spec, obs_dim: int, batch):
     """``compile: true`` with dynamo's guards skipped once warm (unsafe; measurement only)."""
-    sac = make_sac({"compile": True}, obs_dim, spec)
+    sac = make_sac({"loss_impl": "torchrl", "compile": True}, obs_dim, spec)
     for _ in range(3):
         sac.update(batch)
 
@@ -155,7 +158,7 @@ def compiled_whole_update(spec, obs_dim: int):
     """Loss + backward + Adam + target lerp in one ``torch.compile`` (zero_grad stays outside:
     dynamo refuses to trace it). Same maths as ``SAC.update``; foreach capturable Adam because
     dynamo compiles that one."""
-    sac = make_sac({}, obs_dim, spec)
+    sac = make_sac({"loss_impl": "torchrl"}, obs_dim, spec)
     groups = [{k: v for k, v in g.items() if k in ("params", "lr", "name")} for g in sac.optimisers["sac"].param_groups]
     opt = torch.optim.Adam(groups, foreach=True, capturable=True)
     loss, keys = sac.loss, list(sac.loss.in_keys)
@@ -195,8 +198,8 @@ def main() -> None:
     p.add_argument("--no-compile", action="store_true")
     p.add_argument(
         "--compiled",
-        default="uavlae_compiled,compiled_skip_guards",
-        help="compiled variants to build, comma list of uavlae_compiled, compiled_simd_auto, "
+        default="torchrl_compiled",
+        help="compiled variants to build, comma list of torchrl_compiled, compiled_simd_auto, "
         "compiled_whole_update, compiled_skip_guards. They share dynamo's cache on SACLoss.forward, "
         "so each call also checks the others' guards: the default pair has one cache entry",
     )
@@ -216,13 +219,16 @@ def main() -> None:
     load_before = os.getloadavg()
 
     eager = make_sac({}, args.obs_dim, spec)
-    variants: dict[str, callable] = {"uavlae_eager": eager.update}
+    variants: dict[str, callable] = {"uavlae_fused": eager.update}
+    variants["torchrl_eager"] = make_sac({"loss_impl": "torchrl"}, args.obs_dim, spec).update
     ref = ReferenceSAC(args.obs_dim, act_dim, eager.cfg.hidden, eager.cfg)
     variants["plain_torch_reference"] = ref.update
     compiled_info: dict = {"attempted": not args.no_compile}
     builders = {
-        "uavlae_compiled": lambda: make_sac({"compile": True}, args.obs_dim, spec).update,
-        "compiled_simd_auto": lambda: make_sac({"compile": True, "compile_simdlen": None}, args.obs_dim, spec).update,
+        "torchrl_compiled": lambda: make_sac({"loss_impl": "torchrl", "compile": True}, args.obs_dim, spec).update,
+        "compiled_simd_auto": lambda: make_sac(
+            {"loss_impl": "torchrl", "compile": True, "compile_simdlen": None}, args.obs_dim, spec
+        ).update,
         "compiled_whole_update": lambda: compiled_whole_update(spec, args.obs_dim),
         "compiled_skip_guards": lambda: compiled_skip_guards(spec, args.obs_dim, batch),
     }
