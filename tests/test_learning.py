@@ -13,7 +13,9 @@ Measured once (2026-11-23, shared 2-core AMD EPYC VM, torch 2.13.0 CPU, one thre
 SAC's deterministic actor DCR 0.277 (CR 0.000, SLR 0.000) after 12288 frames (10240 gradient
 steps), against DCR 0.037 for uniform random actions on the same 4 scenarios (8 episodes each);
 the training run took 172 s, the whole test 178 s. The thresholds sit a bit below that: SAC DCR
->= 0.20 and >= random + 0.15. (Landing is not learnt in this budget: SLR 0.)
+>= 0.20 and >= random + 0.15. (Landing is not learnt in this budget: SLR 0.) With the fused SAC
+update (the default since that evening, same maths to float rounding): DCR 0.396 (CR 0, SLR 0),
+training 43 s, the whole test 50 s.
 """
 
 from __future__ import annotations
