@@ -67,7 +67,6 @@ class SACConfig(StrictConfig):
     init_random_frames: int = Field(5_000, ge=0)  # uniform-random actions before learning
     utd_ratio: float = Field(1.0, gt=0)  # gradient steps per collected env frame
 
-
     @model_validator(mode="after")
     def _compile_needs_torchrl(self) -> SACConfig:
         if self.compile and self.loss_impl != "torchrl":

@@ -13,9 +13,11 @@ the target update, checkpoints and the acting policy are unchanged), as plain te
 no autograd:
 
 - the first Q layer is split as ``W1 [obs, act] = W1_obs obs + W1_act act``; ``W1_obs obs + b1``
-  for every Q net is one matmul, shared by the critic pass and the actor pass (``SACLoss``
-  detaches the Q parameters in the actor loss, so the actor pass needs no gradient of it);
-- the Q nets' other layers are batched matmuls over the ``num_qvalue_nets`` dimension;
+  for every Q net is one batched matmul, shared by the critic pass and the actor pass
+  (``SACLoss`` detaches the Q parameters in the actor loss, so the actor pass needs no gradient
+  of it);
+- every Q layer is a batched matmul over the ``num_qvalue_nets`` dimension, in a contiguous
+  ``[n_q, N, h]`` layout;
 - backward is written per layer: weight gradients where a loss needs them, input gradients only
   down to where they are needed (the actor loss needs ``dQ/da``, never ``dQ/dobs``);
 - the tanh-normal draw and its log-probability follow ``TanhNormal.rsample_and_log_prob``
@@ -175,15 +177,15 @@ class FusedSACGrad:
     # -- backward pieces ------------------------------------------------------------------
     def _q_back(
         self, g: torch.Tensor, layers: Layers, inputs: list, pre: list, weights: bool
-    ) -> tuple[list[torch.Tensor], torch.Tensor]:
+    ) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
         """From ``dL/dQ`` ``[n_q, N, 1]`` back to the first pre-activation ``[n_q, N, h]``;
-        the weight gradients of layers 2.. (when ``weights``), last layer first."""
-        grads: list[torch.Tensor] = []
+        the (weight, bias) gradients of layers 2.. (when ``weights``), last layer first."""
+        grads: list[tuple[torch.Tensor, torch.Tensor]] = []
         for i in range(len(layers) - 1, 0, -1):
             w_i = layers[i][0]
             x = inputs[i - 1]
             if weights:
-                grads += [g.sum(1), torch.bmm(g.transpose(1, 2), x)]  # bias, weight
+                grads.append((torch.bmm(g.transpose(1, 2), x), g.sum(1)))
             g = torch.bmm(g, w_i)
             g = self.act_grad(g, pre[i - 1], x)
         return grads, g
@@ -205,7 +207,7 @@ class FusedSACGrad:
         log_alpha = self.log_alpha
         alpha = log_alpha.exp()
         w1, _ = self.q_layers[0]
-        n_q, hid = w1.shape[0], w1.shape[1]
+        n_q = w1.shape[0]
 
         # target (SACLoss._compute_target_v2): the next action is drawn first, as in SACLoss
         nxt = self._sample(next_obs)
@@ -230,7 +232,7 @@ class FusedSACGrad:
         q_grads, g_z1 = self._q_back(g_q.unsqueeze(-1), self.q_layers, q_in, q_pre, weights=True)
         g_z1_t = g_z1.transpose(1, 2)  # [n, h, N]
         g_w1 = torch.cat([torch.bmm(g_z1_t, obs.expand(n_q, -1, -1)), torch.bmm(g_z1_t, act.expand(n_q, -1, -1))], dim=2)
-        q_grads += [g_z1.sum(1), g_w1]
+        q_grads.append((g_w1, g_z1.sum(1)))
 
         # actor: a fresh action through the (detached) Q nets, then through the actor
         cur = self._sample(obs)
@@ -251,19 +253,17 @@ class FusedSACGrad:
         g_scale = (g_x * cur["eps"] - g_lp / scale) * (cur["pre_scale"] >= self.scale_lb)
         g_raw = g_scale * torch.sigmoid(cur["raw"] + self.scale_bias)
         g = torch.cat([g_x, g_raw], dim=1)
-        a_grads: list[torch.Tensor] = []
+        a_grads: list[tuple[torch.Tensor, torch.Tensor]] = []  # (weight, bias), last layer first
         inputs, pre = cur["inputs"], cur["pre"]
         for i in range(len(self.actor_layers) - 1, -1, -1):
-            a_grads += [g.sum(0), g.t() @ inputs[i]]
+            a_grads.append((g.t() @ inputs[i], g.sum(0)))
             if i > 0:
                 g = self.act_grad(g @ self.actor_layers[i][0], pre[i - 1], inputs[i])
-        logp_d = logp
-        loss_alpha = (-log_alpha * (logp_d + self.target_entropy)).mean()
-        g_alpha = -(logp_d + self.target_entropy).mean()
+        loss_alpha = (-log_alpha * (logp + self.target_entropy)).mean()
+        g_alpha = -(logp + self.target_entropy).mean()
 
         # in self.params' order: actor (w, b) per layer, Q (w, b) per layer, log_alpha
-        grads = [t for pair in zip(a_grads[1::2][::-1], a_grads[0::2][::-1]) for t in pair]
-        grads += [t for pair in zip(q_grads[1::2][::-1], q_grads[0::2][::-1]) for t in pair]
+        grads = [t for pair in reversed(a_grads) for t in pair] + [t for pair in reversed(q_grads) for t in pair]
         grads.append(g_alpha.reshape(log_alpha.shape))
         logs = {
             "loss_actor": loss_actor,
