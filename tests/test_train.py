@@ -83,15 +83,17 @@ def test_exp_trains_end_to_end(tmp_path, exp):
 
 
 def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
-    # trainer.compile_env / algo.compile (of torchrl's SACLoss) through the whole loop
+    # trainer.compile_env (training and evaluation envs) / algo.compile (of torchrl's SACLoss) through the whole loop
     import uavlae.train as tr
 
-    made = []
-    real = tr.make_env
+    made, evaluators = [], []
+    real, real_evaluator = tr.make_env, tr.Evaluator
     monkeypatch.setattr(tr, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
+    monkeypatch.setattr(tr, "Evaluator", lambda *a, **k: evaluators.append(real_evaluator(*a, **k)) or evaluators[-1])
     final = _run("sac", tmp_path / "c", "trainer.compile_env=true", "algo.loss_impl=torchrl", "algo.compile=true")
     _check_run_outputs(tmp_path / "c", final)
     assert final["updates"] > 0 and len(made) == 1 and made[0].compiled
+    assert len(evaluators) == 1 and evaluators[0].env.compiled  # the evaluation env too
 
 
 def test_heuristic_evaluates(tmp_path):

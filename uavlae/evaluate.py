@@ -62,6 +62,8 @@ class Evaluator:
         max_steps: step budget per episode (``None``: ``env_cfg.t_max``).
         n_plots: trajectories drawn per evaluation.
         device: where the env runs.
+        compile_step: step the evaluation env through ``torch.compile`` (``UAVEnv(compile_step=True)``:
+            the same outputs, ~2x faster per evaluation after a one-off compile on the first).
     """
 
     def __init__(
@@ -73,13 +75,21 @@ class Evaluator:
         max_steps: int | None = None,
         n_plots: int = 3,
         device: str | torch.device = "cpu",
+        compile_step: bool = False,
     ):
         self.env_cfg = make_env_config(env_cfg)
         self.scenarios = list(scenarios)
         self.seed = int(seed)
         self.max_steps = max_steps
         self.n_plots = int(n_plots)
-        self.env = UAVEnv(self.env_cfg, batch_size=len(self.scenarios), device=device, seed=self.seed, scenarios=self.scenarios)
+        self.env = UAVEnv(
+            self.env_cfg,
+            batch_size=len(self.scenarios),
+            device=device,
+            seed=self.seed,
+            scenarios=self.scenarios,
+            compile_step=compile_step,
+        )
 
     def run(self, policy: Any, out_dir: str | os.PathLike[str] | None = None, *, title: str = "") -> dict[str, float]:
         """Evaluate ``policy`` (deterministic exploration); write files under ``out_dir``."""

@@ -80,7 +80,7 @@ class TrainerConfig(_Strict):
     keep_checkpoints: int = Field(ge=1, le=2)
     progress_bar: bool
     log_every_batches: int = Field(ge=1)
-    compile_env: bool = False  # UAVEnv(compile_step=True) for the training env
+    compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
 
     @model_validator(mode="after")
     def _divisible(self) -> "TrainerConfig":

@@ -120,7 +120,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     scenarios = load_or_make_eval_set(env_cfg, eval_set_path(run_dir, tr.eval_set), tr.eval_episodes, tr.eval_seed)
     evaluator = Evaluator(
-        env_cfg, scenarios, seed=tr.eval_seed, max_steps=tr.eval_max_steps, n_plots=tr.eval_plots, device=cfg.device
+        env_cfg,
+        scenarios,
+        seed=tr.eval_seed,
+        max_steps=tr.eval_max_steps,
+        n_plots=tr.eval_plots,
+        device=cfg.device,
+        compile_step=tr.compile_env,
     )
     try:
         if cfg.controller != "learner":
