@@ -157,6 +157,40 @@ def test_replay_buffer_extend_sample_state_dict():
         make_replay_buffer(10, 2, storage="list")
 
 
+def test_fast_sample_equals_torchrl_sample():
+    """UniformReplayBuffer.sample gathers leaf by leaf; torchrl's TensorDictReplayBuffer.sample
+    of the same data with the same generator must give the same TensorDict, bit for bit, before
+    and after the storage wraps around, and the fast path must really be the one taken."""
+    from torchrl.data import TensorDictReplayBuffer
+
+    from uavlae.collect import UniformReplayBuffer
+
+    env = UAVEnv(batch_size=[B], seed=0)
+    col = UAVCollector(env, det_actor(), 40, 80, keep_keys=TRANSITION_KEYS)
+    batches = [b.reshape(-1) for b in col]
+    fast = make_replay_buffer(capacity=60, batch_size=16, seed=3)
+    stock = make_replay_buffer(capacity=60, batch_size=16, seed=3)
+    assert isinstance(fast, UniformReplayBuffer)
+    for data in batches:  # 40 then 80 transitions: the second extend wraps the 60-slot storage
+        fast.extend(data)
+        stock.extend(data)
+        assert fast._fast_sample_ok()
+        for _ in range(5):
+            a = fast.sample()
+            b = TensorDictReplayBuffer.sample(stock)  # the stock path on the twin buffer
+            assert set(a.keys(True, True)) == set(b.keys(True, True))
+            for k in b.keys(True, True):
+                assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), k
+            assert a.batch_size == b.batch_size == torch.Size([16])
+            assert int(a["index"].max()) < len(fast)
+    # rows really come from the storage: the sampled observation is the stored one at "index"
+    s = fast.sample()
+    assert torch.equal(s["observation"], fast[s["index"]]["observation"])
+    # outside the fast path's conditions (another batch size) the stock sample answers
+    with pytest.warns(UserWarning, match="conflicting batch_sizes"):
+        assert fast.sample(8).batch_size == torch.Size([8])
+
+
 # ---------------------------------------------------------------------------- real LLM
 
 
