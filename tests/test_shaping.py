@@ -124,6 +124,15 @@ def test_env_shaped_group_composes():
     assert ec.reward.sigma == make_env_config(None).reward.sigma  # the SPEC terms are untouched
 
 
+def test_env_shaped_geodesic_groups_compose():
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        hard = make_env_config(compose("config", overrides=["+exp=sac", "env=shaped_geodesic"]).env)
+        soft = make_env_config(compose("config", overrides=["+exp=sac", "env=shaped_geodesic_soft"]).env)
+    assert hard.reward.progress_metric == soft.reward.progress_metric == "geodesic"
+    assert hard.reward.progress_clearance_cost == 0.0 and soft.reward.progress_clearance_cost == 10.0
+    assert soft.model_dump()["reward"] | {"progress_clearance_cost": 0.0} == hard.model_dump()["reward"]
+
+
 def test_progress_weight_must_be_nonnegative():
     with pytest.raises(ValueError, match="progress_weight"):
         make_env_config(reward={"progress_weight": -1.0})
@@ -199,6 +208,50 @@ def test_following_the_geodesic_direction_never_enters_a_zone():
             break
         td = env.step_mdp(out)
     assert entered == 0
+
+
+# An NFZ 12 m from the east edge: x in [400, 488], y in [150, 300]. The GE at (495, 225), the centre
+# of cell (49, 22), lies in the 12 m wide corridor between the NFZ and the edge.
+CORRIDOR = dict(nfz=[(400.0, 150.0, 488.0, 300.0)], ge_pos=[(495.0, 225.0)], ge_data=[1.0])
+
+
+def _field_at(cfg, p):
+    from uavlae.envs.geodesic import geodesic_lookup
+
+    env = env_with(p, cfg=cfg, **CORRIDOR)
+    td = env.reset()
+    state = {k: v for k, v in td["state"].items()}
+    return float(geodesic_lookup(state["geo_field"], state["position"], env.cfg)[0, 0])
+
+
+def test_clearance_walls_cut_a_corridor_ge_off():
+    # progress_clearance_cost 0 (the default): every cell of the corridor column x = 495 is within
+    # 12 m of the NFZ (7 m from its east side; (495, 305) is sqrt(7² + 5²) = 8.6 m from its corner),
+    # so from the free cell (495, 315) the GE reads unreachable (the field's "far" value)
+    from uavlae.envs.geodesic import _BIG
+
+    assert _field_at(GEO, (495.0, 315.0)) >= _BIG
+
+
+def test_clearance_cost_opens_the_corridor_at_k_times_the_step():
+    # progress_clearance_cost 10: cells within d_min = 5 m stay walls (the column x = 485 is 3 m from
+    # the NFZ), the corridor column x = 495 costs 10 x 10 m per cell. From the GE's cell (225) north
+    # to (305): 8 corridor cells, 8·100 = 800; then the free cell (315): + 10 m -> 810 m
+    cfg = {**GEO, "reward": {**GEO["reward"], "progress_clearance_cost": 10.0}}
+    assert _field_at(cfg, (495.0, 315.0)) == pytest.approx(810.0, abs=1e-3)
+    assert _field_at(cfg, (495.0, 305.0)) == pytest.approx(800.0, abs=1e-3)
+    # and the direction column points down the corridor (south), not back out of it
+    from uavlae.envs.geodesic import geodesic_target
+
+    env = env_with((495.0, 305.0), cfg=cfg, **CORRIDOR)
+    state = {k: v for k, v in env.reset()["state"].items()}
+    _, unit, _ = geodesic_target(state, env.cfg)
+    torch.testing.assert_close(unit[0], torch.tensor([0.0, -1.0]))
+
+
+def test_clearance_cost_between_zero_and_one_is_refused():
+    with pytest.raises(ValueError, match="progress_clearance_cost"):
+        make_env_config({"reward": {"progress_clearance_cost": 0.5}})
 
 
 def test_geodesic_step_compiles_and_agrees_with_eager():

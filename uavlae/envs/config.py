@@ -198,6 +198,17 @@ class RewardConfig(_Strict):
     # the geodesic way keeps this far from BZs and NFZs (cells whose centre is closer are
     # blocked, except the cells of the targets themselves)
     progress_clearance: float = Field(12.0, ge=0)
+    # [decision] 0: the cells within progress_clearance are walls (a GE in a corridor narrower
+    # than twice the clearance cannot be reached); k >= 1: they are passable at k times the step
+    # length, and only the cells within safety.d_min of a BZ or NFZ are walls
+    progress_clearance_cost: float = Field(0.0, ge=0)
+
+    @field_validator("progress_clearance_cost")
+    @classmethod
+    def _clearance_cost(cls, k: float) -> float:
+        if 0 < k < 1:
+            raise ValueError(f"reward.progress_clearance_cost must be 0 (walls) or >= 1, got {k}")
+        return k
 
     @field_validator("sigma")
     @classmethod

@@ -5,9 +5,12 @@ direction column ([decision] beyond the paper, ``env=shaped_geodesic``). For eve
 every target (each GE, then LA) the distance from each cell centre of a regular grid to the
 target, moving between the 8 neighbouring cells and never through a cell whose centre lies within
 ``progress_clearance`` of a BZ or NFZ, is computed once when the scenario's episode starts
-(batched Bellman-Ford relaxation). A step then only reads the four cell centres around the DCU
-(the distance, interpolated bilinearly) and, for the direction column, the nine cells around
-it, so the per-step cost is a few gathers.
+(batched Bellman-Ford relaxation). With ``progress_clearance_cost`` k >= 1 (``env=shaped_geodesic_soft``)
+the cells within the clearance are passable at k times the step length and only those within
+``safety.d_min`` are walls, so a GE in a corridor narrower than twice the clearance can be reached.
+A step then only reads the four cell centres around the DCU (the distance, interpolated
+bilinearly) and, for the direction column, the nine cells around it, so the per-step cost is a
+few gathers.
 """
 
 from __future__ import annotations
@@ -45,8 +48,9 @@ def _neighbour_min(f: Tensor, dim: int, out: Tensor) -> Tensor:
     return out
 
 
-def _relax_step(f: Tensor, c: float, row: Tensor, col: Tensor, dia: Tensor) -> Tensor:
-    """min(f, f(neighbour) + step length) over the 8 neighbours (``row``/``col``/``dia``: scratch)."""
+def _relax_step(f: Tensor, c: float | Tensor, row: Tensor, col: Tensor, dia: Tensor) -> Tensor:
+    """min(f, f(neighbour) + step length) over the 8 neighbours (``row``/``col``/``dia``: scratch).
+    ``c``: the straight step's length, or per cell ([..., H, W]: the cost of a step into it)."""
     _neighbour_min(f, -1, row)  # west / east neighbours
     _neighbour_min(f, -2, col)  # south / north
     _neighbour_min(row, -2, dia)  # the four diagonal neighbours
@@ -55,7 +59,7 @@ def _relax_step(f: Tensor, c: float, row: Tensor, col: Tensor, dia: Tensor) -> T
     return torch.minimum(f, dia.add_(c * math.sqrt(2.0)))
 
 
-def _relax_chunk(f: Tensor, blocked: Tensor, c: float, max_iters: int) -> Tensor:
+def _relax_chunk(f: Tensor, blocked: Tensor, c: float | Tensor, max_iters: int) -> Tensor:
     f = f.masked_fill(blocked, math.inf)
     scratch = torch.empty_like(f), torch.empty_like(f), torch.empty_like(f)
     for it in range(max_iters):
@@ -66,26 +70,44 @@ def _relax_chunk(f: Tensor, blocked: Tensor, c: float, max_iters: int) -> Tensor
     return f
 
 
-def _relax(f: Tensor, free: Tensor, c: float, max_iters: int, chunk: int = 128) -> Tensor:
+def _relax(f: Tensor, free: Tensor, c: float | Tensor, max_iters: int, chunk: int = 128) -> Tensor:
     """Bellman-Ford on the 8-connected grid: f[n, y, x] = min(f, f(neighbour) + step length)
     over free cells, until nothing changes. ``f``: [N, H, W] (inf away from the sources); the
-    grids are relaxed ``chunk`` at a time, which keeps the working set in cache."""
+    grids are relaxed ``chunk`` at a time, which keeps the working set in cache. ``c``: the
+    straight step's length, or per cell ([N, H, W]: the length of a step into that cell)."""
     if min(f.shape[-2:]) < 3:
         raise ValueError(f"the geodesic grid needs at least 3 x 3 cells, got {tuple(f.shape[-2:])}")
     blocked = ~free
+    per_cell = isinstance(c, Tensor)
     return torch.cat(
-        [_relax_chunk(f[i : i + chunk], blocked[i : i + chunk], c, max_iters) for i in range(0, f.shape[0], chunk)]
+        [_relax_chunk(f[i : i + chunk], blocked[i : i + chunk], c[i : i + chunk] if per_cell else c, max_iters)
+         for i in range(0, f.shape[0], chunk)]
     ) if f.shape[0] else f
 
 
-def _fill_blocked(f: Tensor, c: float, rounds: int = 2) -> Tensor:
+def _zone_distance(points: Tensor, state: dict[str, Tensor]) -> Tensor:
+    """Distance from each point ``[B, P, 2]`` to the nearest BZ or NFZ (``inf`` when none)."""
+    d = [ph.point_rect_distance(points, state[n].unsqueeze(1), state[n + "_mask"].unsqueeze(1)) for n in ("bz", "nfz")]
+    d = torch.cat(d, dim=-1)
+    return ph.nearest_distance(d)
+
+
+def _wall_distance(cfg: EnvConfig) -> float:
+    """Cells whose centre is this close to a BZ or NFZ are walls: the clearance, or with a
+    ``progress_clearance_cost`` only ``safety.d_min`` (the rest of the clearance costs more)."""
+    r = cfg.reward
+    return min(cfg.safety.d_min, r.progress_clearance) if r.progress_clearance_cost > 0 else r.progress_clearance
+
+
+def _fill_blocked(f: Tensor, c: float | Tensor, rounds: int = 2) -> Tensor:
     """Blocked cells (and unreachable ones) get their nearest free neighbour's value plus the
     step, two cells deep, then ``_BIG``: the interpolation next to a wall stays finite, and the
     fill cannot reach across a zone (at least 50 m wide) to a lower value on its far side,
     which would point the way through it."""
     scratch = torch.empty_like(f), torch.empty_like(f), torch.empty_like(f)
     for _ in range(rounds):
-        f = _relax_step(f, c, *scratch)  # free cells already hold their minimum: only blocked ones change
+        # free cells already hold their minimum for the same step lengths: only blocked ones change
+        f = _relax_step(f, c, *scratch)
     return torch.nan_to_num(f, posinf=_BIG).clamp_max(_BIG)
 
 
@@ -99,12 +121,14 @@ def distance_fields(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     h, w = grid_shape(cfg)
     ys, xs = _centres(cfg, device, dtype)
     cells = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1).view(1, h * w, 2)  # row-major (y, x)
-    # blocked: the centre is within progress_clearance of a BZ or an NFZ
-    blocked = torch.zeros(b, h * w, dtype=torch.bool, device=device)
-    for name in ("bz", "nfz"):
-        d = ph.point_rect_distance(cells, state[name].unsqueeze(1), state[name + "_mask"].unsqueeze(1))
-        blocked |= (d <= cfg.reward.progress_clearance).any(-1)
-    blocked = blocked.view(b, h, w)
+    # blocked: the centre is within progress_clearance of a BZ or an NFZ (with a clearance cost:
+    # within d_min, and the cells between cost progress_clearance_cost times the step)
+    d_zone = _zone_distance(cells.expand(b, -1, -1), state).view(b, h, w)
+    blocked = d_zone <= _wall_distance(cfg)
+    k = cfg.reward.progress_clearance_cost
+    cost = None
+    if k > 0:
+        cost = torch.where(d_zone <= cfg.reward.progress_clearance, k, 1.0).to(dtype)
     # sources: the cell holding each GE (its distance to the centre); LA: the cells whose centre is
     # within one cell of the LA rectangle (their distance to it)
     src = torch.full((b, g + 1, h, w), math.inf, device=device, dtype=dtype)
@@ -121,8 +145,9 @@ def distance_fields(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     free = ~blocked.unsqueeze(1) | src.isfinite()
     flat = src.view(b * (g + 1), h, w)
     free_n = free.reshape(b * (g + 1), h, w)
-    f = _relax(flat, free_n, c, max_iters=h * w)
-    f = _fill_blocked(f, c)
+    step = c if cost is None else (cost * c).unsqueeze(1).expand(b, g + 1, h, w).reshape(b * (g + 1), h, w)
+    f = _relax(flat, free_n, step, max_iters=h * w)
+    f = _fill_blocked(f, step)
     f = f.view(b, g + 1, h, w)
     f[:, :g] = torch.where(ge_mask.view(b, g, 1, 1), f[:, :g], torch.full_like(f[:, :g], _BIG))
     return f.view(b, g + 1, h * w)
@@ -211,10 +236,7 @@ def geodesic_target(state: dict[str, Tensor], cfg: EnvConfig) -> tuple[Tensor, T
     rel_target = torch.where((n_left > 0).unsqueeze(-1), rel_ge, rel_la)
     # A DCU that came within the clearance heads for the lowest *free* cell around it: the
     # values of blocked cells are only a fill, and following them can cut a zone's corner.
-    blocked = torch.zeros_like(inside)
-    for name in ("bz", "nfz"):
-        dz = ph.point_rect_distance(centres, state[name].unsqueeze(1), state[name + "_mask"].unsqueeze(1))
-        blocked |= (dz <= cfg.reward.progress_clearance).any(-1)
+    blocked = _zone_distance(centres, state) <= _wall_distance(cfg)
     near_target = torch.linalg.vector_norm(centres - (p + rel_target).unsqueeze(1), dim=-1) <= c
     blocked &= ~near_target
     nb_free = nb.masked_fill(blocked, math.inf)
