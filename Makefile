@@ -68,6 +68,12 @@ LLM_CAP_MIN ?= 6
 paper-table: $(STAMP)
 	$(BIN)/python experiments/paper_table.py --frames $(FRAMES) --seeds $(SEEDS) --cap-minutes $(LLM_CAP_MIN)
 
+# Where a training frame's time goes, ours vs SB3's SAC, part by part -> benchmarks/ttt_cost_breakdown.json
+.PHONY: bench-breakdown
+bench-breakdown: $(STAMP)
+	$(BIN)/pip install -q -e '.[bench]' torch==2.13.0  # the pin keeps the CPU build
+	$(BIN)/python benchmarks/ttt_cost_breakdown.py
+
 # Time to target, our SAC vs Stable-Baselines3's (the `bench` extra) -> benchmarks/time_to_target.json
 # TTT_ARGS adds options, e.g. the many-scenarios regime of benchmarks/time_to_target.md:
 #   make bench-ttt TTT_CAP_MIN=9 TTT_ARGS="--env-batch 64 --utd 0.25 --out benchmarks/time_to_target_b64_utd025.json"

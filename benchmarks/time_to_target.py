@@ -152,7 +152,10 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
         t = time.perf_counter()
         agg = orig_run(self, policy, out_dir, title=title)
         frames["n"] = int(Path(out_dir).name.split("_")[1])  # <run_dir>/eval/frames_000008192
-        clock.record(frames["n"], agg, time.perf_counter() - t)
+        eval_s = time.perf_counter() - t
+        if a.keep_actors and hasattr(policy, "state_dict"):  # beside episodes.csv, outside the clock
+            torch.save(policy.state_dict(), Path(out_dir) / "actor.pt")
+        clock.record(frames["n"], agg, eval_s)
         return agg
 
     def stoppable_learner(*args, **kwargs):
@@ -267,6 +270,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--env", default="default",
                    help="conf/env group both methods train and evaluate on (default: SPEC's world; "
                         "shaped: + progress reward and ego-centric observation columns)")
+    p.add_argument("--run-dir", default=None,
+                   help="keep our run here (eval/frames_*/episodes.csv, ...) instead of a temporary folder")
+    p.add_argument("--keep-actors", action="store_true",
+                   help="save our deterministic actor's state_dict beside each evaluation (eval/frames_*/actor.pt)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "time_to_target.json"))
     a = p.parse_args(argv)
     SAC_HP.update(env_batch=a.env_batch, utd_ratio=a.utd)
@@ -276,7 +283,10 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("WANDB_MODE", "disabled")
     from uavlae.evaluate import load_or_make_eval_set
 
-    work = Path(tempfile.mkdtemp(prefix="ttt_"))
+    work = Path(a.run_dir) if a.run_dir else Path(tempfile.mkdtemp(prefix="ttt_"))
+    if (work / "ours").exists():
+        raise SystemExit(f"--run-dir {work} already holds a run (ours/): name a new folder")
+    work.mkdir(parents=True, exist_ok=True)
     eval_set = work / "eval_set.json"
     load_or_make_eval_set(env_config(a.env), eval_set, a.eval_episodes, a.eval_seed)
     result = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
