@@ -41,3 +41,27 @@ def test_compiled_step_matches_eager():
                     torch.testing.assert_close(y, x, rtol=1e-5, atol=1e-4, equal_nan=True, msg=str(k))
                 else:  # events, flags, step counters, served GE: exactly equal
                     assert torch.equal(x, y), k
+
+
+@pytest.mark.parametrize("blocked_fraction", [0.03, 0.5])  # within the compaction cap, and beyond it
+def test_compiled_retry_matches_eager_sparse_retry(blocked_fraction):
+    # inside the compiled CPU step the heading retries run on the blocked OUs compacted into
+    # retry_capacity slots (or, past that, in the dense form): both give the eager retries
+    from uavlae.envs import physics as ph
+
+    g = torch.Generator().manual_seed(0)
+    b, k, z, t = 512, 7, 6, 4
+    pos = torch.rand(b, k, 2, generator=g) * 500
+    vel = (torch.rand(b, k, 2, generator=g) * 2 - 1) * 10
+    lo = torch.rand(b, z, 2, generator=g) * 450
+    blocked = torch.cat([lo, lo + 20 + torch.rand(b, z, 2, generator=g) * 150], -1)
+    mask = torch.rand(b, z, generator=g) < 0.7
+    ok = torch.rand(b, k, generator=g) > blocked_fraction
+    heads = torch.rand(t, b, k, generator=g) * (2 * torch.pi)
+    n_bad = int((~ok).sum())
+    assert (n_bad > ph.retry_capacity(b * k)) == (blocked_fraction > 0.1)
+    eager = ph._retry(pos, vel, ok, heads, blocked, mask, 500.0, 500.0, 1.0)
+    compiled = torch.compile(ph._retry, dynamic=False, fullgraph=True)(pos, vel, ok, heads, blocked, mask, 500.0, 500.0, 1.0)
+    assert (eager[~ok] == 0).all(-1).sum() < n_bad  # some retries found a heading
+    assert torch.equal(eager[~ok] == 0, compiled[~ok] == 0)  # the same OUs hover
+    torch.testing.assert_close(compiled[~ok], eager[~ok], rtol=1e-5, atol=1e-4)

@@ -187,13 +187,10 @@ class UAVEnv(EnvBase):
         if not compile:
             return core
         # Only tensors (dicts of them) go in; cfg and layout are closed over, so the guards are
-        # on constants and the same compiled graphs serve every step (no recompiles). On CPU the
-        # OU heading retries run eagerly in between (physics._retry_headings_outside_graph: one
-        # deliberate graph break; dynamo resumes each frame on the stack, so four graphs);
-        # elsewhere the step is one graph.
-        return torch.compile(
-            core, dynamic=False, fullgraph=self.device.type != "cpu", options=_inductor_options(self.device)
-        )
+        # on constants and the same compiled graph serves every step (no recompiles). The step is
+        # one graph: on CPU the OU heading retries run on the compacted blocked OUs inside it
+        # (physics._retry_headings_compacted), elsewhere in their dense form.
+        return torch.compile(core, dynamic=False, fullgraph=True, options=_inductor_options(self.device))
 
     def _set_seed(self, seed: int | None) -> None:
         rng = torch.Generator(device=self.device)
