@@ -186,7 +186,11 @@ class UAVEnv(EnvBase):
         def core(state, action, noise):
             nxt, events, terms, cost, terminated, truncated = world_step_core(state, action, noise, cfg)
             reward = torch.stack(list(terms.values()), dim=0).sum(0)
-            return nxt, events, terms, cost, reward, terminated, truncated, layout.build(nxt)
+            # the [B, 1] entries of the output, made here (inside the compiled graph, when compiled)
+            col = {k: e.unsqueeze(-1) for k, e in events.items()}
+            col_terms = {k: r.unsqueeze(-1) for k, r in terms.items()}
+            flags = tuple(f.unsqueeze(-1) for f in (terminated | truncated, terminated, truncated))
+            return nxt, col, col_terms, cost.unsqueeze(-1), reward.unsqueeze(-1), flags, layout.build(nxt)
 
         if not compile:
             return core
@@ -323,22 +327,24 @@ class UAVEnv(EnvBase):
         terms: dict[str, torch.Tensor],
         cost: torch.Tensor,
         reward: torch.Tensor,
-        terminated: torch.Tensor,
-        truncated: torch.Tensor,
+        flags: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         obs: torch.Tensor | None = None,
     ) -> TensorDict:
+        """The output tensordict; events, terms, cost, reward and the (done, terminated,
+        truncated) flags come already shaped ``[B, 1]``."""
         b, new = state["position"].shape[:1], TensorDict._new_unsafe  # ours: skip re-validation
+        done, terminated, truncated = flags
         return new(
             {
                 "observation": self.layout.build(state) if obs is None else obs,
                 "state": new(state, batch_size=b),
-                "reward_terms": new({k: t.unsqueeze(-1) for k, t in terms.items()}, batch_size=b),
-                "events": new({k: e.unsqueeze(-1) for k, e in events.items()}, batch_size=b),
-                "cost": cost.unsqueeze(-1),
-                "reward": reward.unsqueeze(-1),
-                "done": (terminated | truncated).unsqueeze(-1),
-                "terminated": terminated.unsqueeze(-1),
-                "truncated": truncated.unsqueeze(-1),
+                "reward_terms": new(terms, batch_size=b),
+                "events": new(events, batch_size=b),
+                "cost": cost,
+                "reward": reward,
+                "done": done,
+                "terminated": terminated,
+                "truncated": truncated,
             },
             batch_size=b,
             device=self.device,
@@ -353,10 +359,10 @@ class UAVEnv(EnvBase):
         scen, pos = self._scenarios_for(rows)
         state = initial_state(scen.to_dict(), self.cfg)
         n = scen.batch_size[0]
-        zf = torch.zeros(n, device=self.device)
-        zb = torch.zeros(n, device=self.device, dtype=torch.bool)
+        zf = torch.zeros(n, 1, device=self.device)
+        zb = torch.zeros(n, 1, device=self.device, dtype=torch.bool)
         out = self._output(
-            state, {k: zb for k in EVENT_KEYS}, {k: zf for k in REWARD_KEYS}, zf, zf, zb, zb
+            state, {k: zb for k in EVENT_KEYS}, {k: zf for k in REWARD_KEYS}, zf, zf, (zb, zb, zb)
         )
         del out["reward"]
         return out if pos is None else out[pos]
@@ -365,7 +371,7 @@ class UAVEnv(EnvBase):
         st = tensordict.get("state")
         state = {k: st.get(k) for k in self.raw_state_keys}
         action = tensordict.get("action")
-        nxt, events, terms, cost, reward, terminated, truncated, obs = self._core(
+        nxt, events, terms, cost, reward, flags, obs = self._core(
             state, action, draw_noise(state, self.cfg, self.rng)
         )
-        return self._output(nxt, events, terms, cost, reward, terminated, truncated, obs)
+        return self._output(nxt, events, terms, cost, reward, flags, obs)
