@@ -68,10 +68,10 @@ class UAVEnv(EnvBase):
         compile_step: run the step (``world_step_core``, reward sum and observation) through
             ``torch.compile`` (Inductor, static shapes). Off by default. The first step pays a
             one-off compile of about 20-30 s on a small CPU, once per process, batch size and
-            device (Inductor's on-disk cache makes later runs take a few seconds); after that
-            the physics part of a step is about 1.5-2x faster on CPU at B >= 256 (the whole
-            TorchRL ``step_and_maybe_reset``, with its partial resets, about 1.5x at B = 4096:
-            see ``benchmarks/env_throughput.py --compile``). Worth it for long collection runs,
+            device (Inductor's on-disk cache makes later runs take about 10 s); after that the
+            whole TorchRL ``step_and_maybe_reset``, partial resets included, is about 1.7x
+            faster on CPU at B = 1024-4096 and about 3x at B = 64 (one thread; see
+            ``benchmarks/env_throughput.py --compile``). Worth it for long collection runs,
             not for tests or short evaluations. Events, flags and integer state equal the eager
             ones exactly; floats may differ in the last bit (Inductor's fused float32 math).
             Not TorchRL's own ``compile=`` keyword: EnvBase's metaclass takes that one and
