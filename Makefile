@@ -48,6 +48,12 @@ bench-sac: $(STAMP)
 bench-env: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py --compile
 
+# This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
+.PHONY: bench-env-ab
+AB_BASE ?= 072c0d7
+bench-env-ab: $(STAMP)
+	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE)
+
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 
