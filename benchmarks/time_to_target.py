@@ -189,16 +189,9 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
     return out
 
 
-def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
-    """Stable-Baselines3 SAC on 16 ``UAVGymEnv``, evaluated by the same ``Evaluator``."""
-    import stable_baselines3
+def make_sb3_sac(vec, seed: int, *, learning_starts: int, gradient_steps: int):
+    """Stable-Baselines3's SAC with Table 4's hyperparameters (``SAC_HP``) on the vector env ``vec``."""
     from stable_baselines3 import SAC
-    from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    from uavlae.envs.gym_adapter import UAVGymEnv
-    from uavlae.envs.scenario import load_scenarios
-    from uavlae.evaluate import Evaluator
 
     class SplitLRSAC(SAC):
         """SB3's SAC has one learning rate; Table 4 has two (actor 1e-4, critic 3e-4)."""
@@ -210,18 +203,31 @@ def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
                     for g in opt.param_groups:
                         g["lr"] = lr
 
+    return SplitLRSAC(
+        "MlpPolicy", vec, learning_rate=SAC_HP["critic_lr"], buffer_size=1_000_000,
+        learning_starts=learning_starts, batch_size=SAC_HP["batch_size"], tau=SAC_HP["tau"],
+        gamma=SAC_HP["gamma"], train_freq=1, gradient_steps=gradient_steps, ent_coef="auto_1.0", target_entropy="auto",
+        policy_kwargs={"net_arch": list(SAC_HP["hidden"]), "activation_fn": torch.nn.ReLU},
+        seed=seed, device="cpu", verbose=0,
+    )
+
+
+def run_sb3(a: argparse.Namespace, eval_set: Path) -> dict:
+    """Stable-Baselines3 SAC on 16 ``UAVGymEnv``, evaluated by the same ``Evaluator``."""
+    import stable_baselines3
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from uavlae.envs.gym_adapter import UAVGymEnv
+    from uavlae.envs.scenario import load_scenarios
+    from uavlae.evaluate import Evaluator
+
     env_cfg = env_config(a.env)
     n = SAC_HP["env_batch"]
     clock = Clock(a.cap_minutes * 60)
     vec = DummyVecEnv([lambda: UAVGymEnv(env_cfg) for _ in range(n)])
     vec.seed(a.seed)
-    model = SplitLRSAC(
-        "MlpPolicy", vec, learning_rate=SAC_HP["critic_lr"], buffer_size=1_000_000,
-        learning_starts=SAC_HP["init_random_frames"], batch_size=SAC_HP["batch_size"], tau=SAC_HP["tau"],
-        gamma=SAC_HP["gamma"], train_freq=1, gradient_steps=sb3_gradient_steps(), ent_coef="auto_1.0", target_entropy="auto",
-        policy_kwargs={"net_arch": list(SAC_HP["hidden"]), "activation_fn": torch.nn.ReLU},
-        seed=a.seed, device="cpu", verbose=0,
-    )
+    model = make_sb3_sac(vec, a.seed, learning_starts=SAC_HP["init_random_frames"], gradient_steps=sb3_gradient_steps())
     evaluator = Evaluator(env_cfg, load_scenarios(eval_set), seed=a.eval_seed, n_plots=0)
 
     def actor(td):  # the deterministic SB3 actor (tanh of the mean) on UAVEnv's observation

@@ -58,10 +58,9 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("WANDB_MODE", "disabled")
 
     from hydra import compose, initialize_config_dir
-    from stable_baselines3 import SAC
     from stable_baselines3.common.vec_env import DummyVecEnv
     from torchrl.data import TensorDictReplayBuffer
-    from time_to_target import SAC_HP, env_config
+    from time_to_target import SAC_HP, env_config, make_sb3_sac
 
     from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
     from uavlae.envs.gym_adapter import UAVGymEnv
@@ -89,14 +88,10 @@ def main(argv: list[str] | None = None) -> None:
     for _ in range(20):  # warm-up: allocator, fused Adam state
         learner.update(replay.sample())
 
-    # SB3, as benchmarks/time_to_target.py runs it
+    # SB3, built as benchmarks/time_to_target.py builds it
     vec = DummyVecEnv([lambda: UAVGymEnv(env_cfg) for _ in range(b)])
     vec.seed(0)
-    model = SAC("MlpPolicy", vec, learning_rate=SAC_HP["critic_lr"], buffer_size=1_000_000, learning_starts=0,
-                batch_size=SAC_HP["batch_size"], tau=SAC_HP["tau"], gamma=SAC_HP["gamma"], train_freq=1,
-                gradient_steps=0, ent_coef="auto_1.0", target_entropy="auto",
-                policy_kwargs={"net_arch": list(SAC_HP["hidden"]), "activation_fn": torch.nn.ReLU},
-                seed=0, device="cpu", verbose=0)
+    model = make_sb3_sac(vec, 0, learning_starts=0, gradient_steps=0)  # as time_to_target.py, gradient steps timed apart
     model.learn(total_timesteps=20_000, reset_num_timesteps=True)  # fill its buffer with the actor's transitions
     model.train(gradient_steps=20, batch_size=SAC_HP["batch_size"])  # warm-up
 
