@@ -339,8 +339,7 @@ def _retry_headings_compacted(
     on the blocked OUs compacted into ``retry_capacity`` slots (``nonzero_static``), or, when more
     are blocked, the dense form (``torch.cond``). The same tests on the same numbers as the eager
     sparse form, without the graph break that running it eagerly would need."""
-    *lead_shape, k = ok.shape
-    n_slots, t, z = ok.numel(), headings.shape[0], blocked.shape[-2]
+    k, n_slots, t, z = ok.shape[-1], ok.numel(), headings.shape[0], blocked.shape[-2]
     cap = retry_capacity(n_slots)
     bad = ~ok.reshape(-1)
 

@@ -41,7 +41,7 @@ def _inductor_options(device: torch.device) -> dict[str, Any]:
     a bit width (256 or 512), so 8 matches no instruction set and it emits scalar C++ loops:
     with the step's tiny entity dimensions (2, 4, 7, 15) innermost, those beat its vectorised
     loops (with ``simdlen: 512`` the compiled ``world_step_core`` took 11.4 ms instead of 7.0 ms
-    at B = 4096 on an AVX-512 EPYC, the OU step 7.3 instead of 3.1). ``cpp_wrapper`` calls the
+    at B = 4096 on an AVX-512 Intel Xeon, the OU step 7.3 instead of 3.1). ``cpp_wrapper`` calls the
     kernels from generated C++ instead of Python: x1.16 at B = 1, x1.08 at B = 64, no change at
     B = 4096 (per-call overhead). Elsewhere: the defaults."""
     if device.type != "cpu":
