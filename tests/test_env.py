@@ -156,3 +156,16 @@ def test_maybe_reset_row_path_equals_torchrl_generic_path(mode):
         assert torch.equal(root_fast["state", "position"][keep], terminal["state", "position"][keep])
         assert (root_fast["state", "step"][~keep] == 0).all() and not root_fast["done"].any()
         td_fast, td_slow = root_fast, root_slow
+
+
+def test_maybe_reset_of_a_deeper_root_takes_the_generic_path():
+    """A root with an entry three levels deep is not the env's flat layout: UAVEnv.maybe_reset
+    hands it to EnvBase.maybe_reset, which keeps the entry (zeroed in the reset rows)."""
+    env = UAVEnv(batch_size=[4], seed=0)
+    td = env.step(env.reset().set("action", torch.zeros(4, 2)))
+    td["next", "done"] = torch.tensor([[True], [False], [False], [False]])
+    root = env._step_mdp(td)
+    root["extra", "deep", "x"] = torch.ones(4, 3)
+    out = env.maybe_reset(root)
+    assert out["extra", "deep", "x"].sum(-1).tolist() == [0.0, 3.0, 3.0, 3.0]
+    assert out["state", "step"].tolist() == [0, 1, 1, 1]

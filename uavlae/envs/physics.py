@@ -415,7 +415,11 @@ def ou_step(
     turn, new_speed, new_heading = noise["turn"], noise["speed"], noise["heading"]
     retry_heading = noise["retry_heading"]
 
-    v = torch.where(turn.unsqueeze(-1), _heading_velocity(new_speed, new_heading), vel)
+    if "heading_cos" in noise:  # cos/sin of the new headings, computed by the caller
+        turned = torch.stack((new_speed * noise["heading_cos"], new_speed * noise["heading_sin"]), dim=-1)
+    else:
+        turned = _heading_velocity(new_speed, new_heading)
+    v = torch.where(turn.unsqueeze(-1), turned, vel)
     ok = _ou_move_ok(pos, v, blocked, blocked_mask, x_size, y_size, m.t_fly)
 
     # a blocked move keeps its speed and tries new headings, the first valid one wins
