@@ -14,6 +14,7 @@ import math
 import torch
 from torch import Tensor
 
+from uavlae.envs import ckernels
 from uavlae.envs.config import (
     ChannelConfig,
     CostConfig,
@@ -415,6 +416,16 @@ def ou_step(
     turn, new_speed, new_heading = noise["turn"], noise["speed"], noise["heading"]
     retry_heading = noise["retry_heading"]
 
+    if (
+        ckernels.LOADED and torch.compiler.is_compiling() and "heading_cos" in noise
+        and pos.device.type == "cpu" and pos.dtype == torch.float32 and pos.dim() == 3
+        and vel.shape == pos.shape and blocked.shape[:-2] == pos.shape[:-2]
+    ):
+        # the compiled CPU step: the same OU step in C, one OU at a time (envs/ckernels.py)
+        return torch.ops.uavlae.ou_step_cpu(
+            pos, vel, mask, blocked, blocked_mask, turn, new_speed, noise["heading_cos"], noise["heading_sin"],
+            retry_heading, float(x_size), float(y_size), float(m.t_fly),
+        )
     if "heading_cos" in noise:  # cos/sin of the new headings, computed by the caller
         turned = torch.stack((new_speed * noise["heading_cos"], new_speed * noise["heading_sin"]), dim=-1)
     else:

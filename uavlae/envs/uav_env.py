@@ -16,6 +16,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from uavlae.envs import ckernels
 from uavlae.envs.config import EnvConfig, make_env_config
 from uavlae.envs.geodesic import grid_shape
 from uavlae.envs.scenario import Scenario, sample_scenarios, stack_scenarios
@@ -72,8 +73,11 @@ class UAVEnv(EnvBase):
             whole TorchRL ``step_and_maybe_reset``, partial resets included, is about 1.7x
             faster on CPU at B = 1024-4096 and about 3x at B = 64 (one thread; see
             ``benchmarks/env_throughput.py --compile``). Worth it for long collection runs,
-            not for tests or short evaluations. Events, flags and integer state equal the eager
-            ones exactly; floats may differ in the last bit (Inductor's fused float32 math).
+            not for tests or short evaluations. On CPU, the OU step and the GE service run
+            inside the graph as small C kernels (:mod:`uavlae.envs.ckernels`, built once with
+            the C compiler; x1.3 at B = 1024-4096, ``benchmarks/env_ab.json``). Events, flags
+            and integer state equal the eager ones exactly; floats may differ in the last bit
+            (Inductor's fused float32 math, ``cosf``/``log2f``).
             Not TorchRL's own ``compile=`` keyword: EnvBase's metaclass takes that one and
             compiles the whole ``step_and_maybe_reset``, resets included, which recompiles on
             every partial reset (the scenario pool's counters are Python ints).
@@ -101,6 +105,8 @@ class UAVEnv(EnvBase):
         self.layout = ObservationLayout(self.cfg)
         self.raw_state_keys = state_keys(self.cfg)
         self.compiled = bool(compile_step)
+        if self.compiled and self.device.type == "cpu":
+            ckernels.load()  # the compiled CPU step's OU step in C (falls back to torch's, with a warning)
         self._core = self._make_core(self.compiled)
         self._fixed: TensorDictBase | None = None
         self._pool: TensorDictBase | None = None

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from uavlae.envs import ckernels
 from uavlae.envs import geodesic as geo
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
@@ -26,6 +27,13 @@ DYNAMIC_KEYS = (
 )
 STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
 GEO_KEY = "geo_field"  # [B, G + 1, H·W], only with reward.progress_metric = geodesic
+
+
+def _c_kernels(x: Tensor) -> bool:
+    """Inside a CPU torch.compile graph of float32 tensors, with the C kernels built: parts of
+    the step then run as the custom ops of :mod:`uavlae.envs.ckernels` (the same operations as
+    the torch code beside each call, which stays the reference and the path everywhere else)."""
+    return ckernels.LOADED and torch.compiler.is_compiling() and x.device.type == "cpu" and x.dtype == torch.float32
 
 
 def uses_geodesic(cfg: EnvConfig) -> bool:
@@ -196,11 +204,19 @@ def world_step_core(
     rz_speeding = in_rz & (speed > m.v_limit + 1e-4)
 
     # Hover phase at L_{t+1}: TDMA service of at most one GE (SPEC §3).
-    snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
     tie = noise["ge_tie"]
-    td, served, remaining = ph.serve_ge(
-        snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
-    )
+    if _c_kernels(p1):
+        # the compiled CPU step: channel and service in C, the rate only for the eligible GEs
+        td, served, remaining = torch.ops.uavlae.serve_cpu(
+            p1, state["ge_pos"], state["ge_remaining"], state["ge_mask"], tie, float(a.altitude),
+            float(cfg.ge.tx_power), float(cfg.channel.alpha), float(cfg.channel.noise),
+            float(cfg.channel.snr_threshold), float(m.t_hover),
+        )
+    else:
+        snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
+        td, served, remaining = ph.serve_ge(
+            snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
+        )
     energy_used = state["energy_used"] + ph.slot_energy(speed, cfg.energy, m)
     energy_left = cfg.energy.e_limit - energy_used
     data_collected = state["data_collected"] + td

@@ -1,0 +1,146 @@
+"""The C kernels of the compiled CPU step (uavlae/envs/ckernels.py) against hand-computed values
+and against the torch physics they replace."""
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from uavlae.envs import ckernels
+from uavlae.envs import physics as ph
+from uavlae.envs.config import EnvConfig
+
+pytestmark = pytest.mark.skipif(not ckernels.load(), reason="no C compiler: the compiled step keeps its torch code")
+
+CFG = EnvConfig()
+M, OU = CFG.motion, CFG.ou
+
+
+def _ou_c(pos, vel, mask, blocked, bmask, noise):
+    cos, sin = torch.cos(noise["heading"]), torch.sin(noise["heading"])
+    return torch.ops.uavlae.ou_step_cpu(pos, vel, mask, blocked, bmask, noise["turn"], noise["speed"], cos, sin,
+                                        noise["retry_heading"], 500.0, 500.0, M.t_fly)
+
+
+def _noise(b, k, turn=False, retry=(0.0, math.pi / 2, math.pi, 1.5 * math.pi)):
+    return {
+        "turn": torch.full((b, k), turn), "speed": torch.zeros(b, k), "heading": torch.zeros(b, k),
+        "retry_heading": torch.tensor(retry).reshape(-1, 1, 1).expand(-1, b, k).contiguous(),
+    }
+
+
+def test_ou_retry_hover_and_absent_by_hand():
+    # OU 0 flies east into a building 5 m ahead: heading 0 is blocked, pi/2 (north) is free.
+    # OU 1 sits in a 1 m gap between two buildings and the area's corner: every retry is blocked.
+    # OU 2 is absent: it keeps its position and velocity.
+    pos = torch.tensor([[[100.0, 100.0], [495.0, 495.0], [10.0, 10.0]]])
+    vel = torch.tensor([[[10.0, 0.0], [10.0, 0.0], [3.0, 4.0]]])
+    mask = torch.tensor([[True, True, False]])
+    blocked = torch.tensor([[[105.0, 90.0, 120.0, 110.0], [480.0, 480.0, 490.0, 500.0], [480.0, 480.0, 500.0, 490.0]]])
+    bmask = torch.ones(1, 3, dtype=torch.bool)
+    new_pos, new_vel = _ou_c(pos, vel, mask, blocked, bmask, _noise(1, 3))
+    # OU 0: same speed 10 at heading pi/2 -> (10 cos(pi/2), 10 sin(pi/2)) = (-4.4e-7, 10)
+    torch.testing.assert_close(new_vel[0, 0], torch.tensor([10.0 * math.cos(math.pi / 2), 10.0]))
+    torch.testing.assert_close(new_pos[0, 0], torch.tensor([100.0, 110.0]))
+    # OU 1: east leaves the area, north too, west and south meet the buildings: it hovers
+    assert new_vel[0, 1].tolist() == [0.0, 0.0] and new_pos[0, 1].tolist() == [495.0, 495.0]
+    assert new_pos[0, 2].tolist() == [10.0, 10.0] and new_vel[0, 2].tolist() == [3.0, 4.0]
+    # the torch reference gives the same
+    ref_pos, ref_vel = ph.ou_step(pos, vel, mask, blocked, bmask, 500.0, 500.0, OU, M, noise=_noise(1, 3))
+    torch.testing.assert_close(new_pos, ref_pos)
+    torch.testing.assert_close(new_vel, ref_vel)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ou_step_matches_the_torch_reference(seed):
+    g = torch.Generator().manual_seed(seed)
+    b, k, z = 512, 7, 6
+    pos = torch.rand(b, k, 2, generator=g) * 500
+    vel = (torch.rand(b, k, 2, generator=g) * 2 - 1) * 10
+    mask = torch.rand(b, k, generator=g) < 0.8
+    lo = torch.rand(b, z, 2, generator=g) * 450
+    blocked = torch.cat([lo, lo + 20 + torch.rand(b, z, 2, generator=g) * 150], -1)
+    bmask = torch.rand(b, z, generator=g) < 0.7
+    noise = ph.ou_noise((b, k), OU, M, g)
+    ref_pos, ref_vel = ph.ou_step(pos, vel, mask, blocked, bmask, 500.0, 500.0, OU, M, noise=noise)
+    new_pos, new_vel = _ou_c(pos, vel, mask, blocked, bmask, noise)
+    hover_ref, hover_new = (ref_vel == 0).all(-1) & mask, (new_vel == 0).all(-1) & mask
+    assert hover_ref.sum() > 0 and torch.equal(hover_ref, hover_new)  # the same OUs found no heading
+    moved = ~torch.isclose(ref_vel, vel).all(-1) & mask
+    assert moved.sum() > 0.05 * mask.sum()  # turns and retries happened
+    torch.testing.assert_close(new_pos, ref_pos, rtol=1e-6, atol=1e-4)
+    torch.testing.assert_close(new_vel, ref_vel, rtol=1e-6, atol=1e-5)
+
+
+def _serve_c(p, ge, rem, mask, tie):
+    ch = CFG.channel
+    return torch.ops.uavlae.serve_cpu(p, ge, rem, mask, tie, CFG.area.altitude, CFG.ge.tx_power, ch.alpha,
+                                      ch.noise, ch.snr_threshold, M.t_hover)
+
+
+def test_serve_by_hand():
+    # SNR at ground distance r: TP·α/(r² + H²)/N = 0.01·0.36/(r² + 100)/1e-6; rate = log2(1 + SNR)
+    # TD = min(DV, B·t_hover), t_hover = 1: the data left (3.0), else the rate
+    # r = 0: SNR 36, rate log2(37) = 5.2095; r = 10: SNR 18, rate log2(19) = 4.2479; r = 31: SNR 3.42 < 3.6
+    p = torch.zeros(4, 2)
+    ge = torch.tensor([[0.0, 0.0], [10.0, 0.0], [31.0, 0.0]]).expand(4, 3, 2).contiguous()
+    rem = torch.tensor([[3.0, 2.0, 1.0], [6.0, 2.0, 1.0], [0.0, 5.0, 1.0], [0.0, 0.0, 1.0]])
+    mask = torch.ones(4, 3, dtype=torch.bool)
+    td, served, left = _serve_c(p, ge, rem, mask, torch.rand(4, 3))
+    assert served.tolist() == [0, 0, 1, -1]
+    torch.testing.assert_close(td, torch.tensor([3.0, math.log2(37.0), math.log2(19.0), 0.0]))
+    torch.testing.assert_close(left, torch.tensor([[0.0, 2.0, 1.0], [6.0 - math.log2(37.0), 2.0, 1.0],
+                                                   [0.0, 5.0 - math.log2(19.0), 1.0], [0.0, 0.0, 1.0]]))
+
+
+def test_serve_breaks_exact_ties_by_the_noise_and_matches_the_torch_reference():
+    p = torch.zeros(2, 2)
+    ge = torch.tensor([[5.0, 0.0], [0.0, 5.0], [-5.0, 0.0]]).expand(2, 3, 2).contiguous()  # three at 5 m
+    rem, mask = torch.ones(2, 3), torch.ones(2, 3, dtype=torch.bool)
+    tie = torch.tensor([[0.2, 0.9, 0.5], [0.7, 0.1, 0.7]])
+    _, served, _ = _serve_c(p, ge, rem, mask, tie)
+    assert served.tolist() == [1, 0]  # the largest noise; on equal noise the first
+    g = torch.Generator().manual_seed(0)
+    b, n = 2048, 15
+    p = torch.rand(b, 2, generator=g) * 500
+    ge = (p.unsqueeze(1) + (torch.rand(b, n, 2, generator=g) * 2 - 1) * 40).contiguous()
+    rem = torch.rand(b, n, generator=g) * 3 * (torch.rand(b, n, generator=g) < 0.7)
+    mask = torch.rand(b, n, generator=g) < 0.9
+    tie = torch.rand(b, n, generator=g)
+    snr, rate = ph.channel(p, ge, CFG.area.altitude, CFG.ge.tx_power, CFG.channel)
+    td_ref, served_ref, left_ref = ph.serve_ge(snr, rate, rem, mask, CFG.channel.snr_threshold, M.t_hover, tie)
+    td, served, left = _serve_c(p, ge, rem, mask, tie)
+    assert (served_ref >= 0).sum() > b // 4 and torch.equal(served, served_ref)
+    torch.testing.assert_close(td, td_ref)
+    torch.testing.assert_close(left, left_ref)
+
+
+def test_bad_input_names_the_tensor():
+    pos = torch.zeros(2, 3, 2)
+    with pytest.raises(ValueError, match="blocked_mask must be a 2-d CPU torch.bool"):
+        torch.ops.uavlae.ou_step_cpu(pos, pos, torch.ones(2, 3, dtype=torch.bool), torch.zeros(2, 1, 4),
+                                     torch.ones(2, 1), torch.zeros(2, 3, dtype=torch.bool), torch.zeros(2, 3),
+                                     torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(4, 2, 3), 500.0, 500.0, 1.0)
+    with pytest.raises(ValueError, match="ge_pos must be a CPU torch.float32 tensor of shape \\[2, 3, 2\\]"):
+        _serve_c(torch.zeros(2, 2), torch.zeros(2, 4, 2), torch.zeros(2, 3), torch.ones(2, 3, dtype=torch.bool), torch.zeros(2, 3))
+
+
+def _load_in_subprocess(env_update: dict, cache) -> subprocess.CompletedProcess:
+    env = {**os.environ, "UAVLAE_CACHE_DIR": str(cache), **env_update}
+    code = "import warnings; warnings.simplefilter('always'); from uavlae.envs import ckernels; print(ckernels.load())"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_a_failed_build_warns_falls_back_and_leaves_nothing_behind(tmp_path):
+    out = _load_in_subprocess({"CC": "/bin/false"}, tmp_path)
+    assert out.stdout.strip() == "False"
+    assert "could not be built" in out.stderr and "/bin/false exited with 1" in out.stderr
+    assert list((tmp_path / "ckernels").iterdir()) == []  # no library, no half-built temporary
+    out = _load_in_subprocess({"UAVLAE_C_KERNELS": "0"}, tmp_path)
+    assert out.stdout.strip() == "False" and out.stderr == ""
+    out = _load_in_subprocess({}, tmp_path)  # a real build into the fresh cache
+    assert out.stdout.strip() == "True"
+    assert [p.suffix for p in (tmp_path / "ckernels").iterdir()] == [".so"]

@@ -1,0 +1,272 @@
+"""A C kernel for the OU step of the compiled CPU step (``UAVEnv(compile_step=True)``).
+
+Inductor's C++ for the step runs scalar loops over the tiny entity dimensions (7 OUs x 6
+blocked rectangles x 2 coordinates); the OU move check and its heading retries were the
+largest part of the compiled step. This kernel does the same work one OU at a time: a
+branch-free bounding-box screen over the scenario's rectangles, the exact segment test only
+when a box is near, and the retries only for the OUs that are blocked (about 2.5%). It runs
+the operations of :func:`uavlae.envs.physics.ou_step` in the same order, in float32, with no
+fused multiply-add, so decisions and positions match the torch version; the retried
+velocities may differ in the last bit (``cosf``/``sinf``/``sqrtf`` against ATen's).
+
+The torch functions in :mod:`uavlae.envs.physics` stay the reference: the eager env always
+uses them, and ``tests/test_ckernels.py`` checks this kernel against them. The kernel is
+built on first use with the C compiler (``$CC``, else ``cc``/``gcc``, the one Inductor needs
+anyway) into ``$UAVLAE_CACHE_DIR`` (default ``~/.cache/uavlae``), atomically; without a
+compiler, with ``UAVLAE_C_KERNELS=0``, or when the build fails (a warning names the cause), the
+compiled step keeps its torch OU step. It is registered as the custom op
+``torch.ops.uavlae.ou_step_cpu`` so that ``torch.compile`` calls it from inside its graph.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+__all__ = ["load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu"]
+
+SOURCE = r"""
+#include <math.h>
+#include <stdbool.h>
+#include <stdint.h>
+
+static inline float lo_(float a, float b) { return a < b ? a : b; }
+static inline float hi_(float a, float b) { return a > b ? a : b; }
+
+/* physics.segment_meets_rect's separating-axis test, its bounding boxes known to overlap */
+static inline bool side_test(float ax, float ay, float bx, float by, const float *r) {
+    float dx = bx - ax, dy = by - ay;
+    float cy0 = dx * (r[1] - ay), cy1 = dx * (r[3] - ay);
+    float cx0 = dy * (r[0] - ax), cx1 = dy * (r[2] - ax);
+    float lo = lo_(cy0, cy1) - hi_(cx0, cx1), hi = hi_(cy0, cy1) - lo_(cx0, cx1);
+    return lo <= 0 && hi >= 0;
+}
+
+/* physics._ou_move_ok for one move: it meets no present rectangle and ends inside A */
+static inline bool move_ok(float sx, float sy, float vx, float vy, float t, const float *rects,
+                           const bool *rmask, int64_t nz, float xs, float ys) {
+    float ex = sx + vx * t, ey = sy + vy * t;
+    int outside = (ex < 0) | (ex > xs) | (ey < 0) | (ey > ys);
+    float mnx = lo_(sx, ex), mxx = hi_(sx, ex), mny = lo_(sy, ey), mxy = hi_(sy, ey);
+    int near = 0;
+    for (int64_t z = 0; z < nz; z++) {
+        const float *r = rects + 4 * z;
+        near |= (mnx <= r[2]) & (mxx >= r[0]) & (mny <= r[3]) & (mxy >= r[1]) & rmask[z];
+    }
+    if (outside) return false;
+    if (!near) return true;
+    for (int64_t z = 0; z < nz; z++) {
+        const float *r = rects + 4 * z;
+        if (rmask[z] && mnx <= r[2] && mxx >= r[0] && mny <= r[3] && mxy >= r[1]
+            && side_test(sx, sy, ex, ey, r)) return false;
+    }
+    return true;
+}
+
+/* physics.ou_step with its noise given, for [B, K] OUs and [B, Z] blocked rectangles */
+void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, const float *pos,
+                    const float *vel, const bool *mask, const float *rects, const bool *rmask,
+                    const bool *turn, const float *speed, const float *hcos, const float *hsin,
+                    const float *retry, float xs, float ys, float t, float *npos, float *nvel) {
+    for (int64_t b = 0; b < nb; b++) {
+        const float *r = rects + 4 * nz * b;
+        const bool *rm = rmask + nz * b;
+        for (int64_t k = 0; k < nk; k++) {
+            int64_t i = b * nk + k;
+            float px = pos[2 * i], py = pos[2 * i + 1], vx = vel[2 * i], vy = vel[2 * i + 1];
+            if (!mask[i]) {  /* absent: position and velocity stay */
+                npos[2 * i] = px; npos[2 * i + 1] = py; nvel[2 * i] = vx; nvel[2 * i + 1] = vy;
+                continue;
+            }
+            if (turn[i]) { vx = speed[i] * hcos[i]; vy = speed[i] * hsin[i]; }
+            if (!move_ok(px, py, vx, vy, t, r, rm, nz, xs, ys)) {
+                /* same speed, the first valid retry heading, else hover */
+                float s = sqrtf(vx * vx + vy * vy), cx = 0.0f, cy = 0.0f;
+                for (int64_t j = 0; j < nt; j++) {
+                    float h = retry[j * nb * nk + i];
+                    float tx = s * cosf(h), ty = s * sinf(h);
+                    if (move_ok(px, py, tx, ty, t, r, rm, nz, xs, ys)) { cx = tx; cy = ty; break; }
+                }
+                vx = cx; vy = cy;
+            }
+            npos[2 * i] = px + vx * t; npos[2 * i + 1] = py + vy * t;
+            nvel[2 * i] = vx; nvel[2 * i + 1] = vy;
+        }
+    }
+}
+
+/* physics.channel then physics.serve_ge for [B] DCU positions and [B, G] GEs: the rate (a
+   log2) is computed only for the eligible GEs, the only ones serve_ge can pick */
+void uavlae_serve(int64_t nb, int64_t ng, const float *p, const float *ge, const float *rem,
+                  const bool *mask, const float *tie, float h2, float tx, float alpha,
+                  float noise, float thr, float t_hover, float *td, int64_t *served,
+                  float *rem_new) {
+    float rate[ng > 0 ? ng : 1];
+    for (int64_t b = 0; b < nb; b++) {
+        const float *g = ge + 2 * ng * b;
+        const float *r = rem + ng * b;
+        float *out = rem_new + ng * b;
+        float best = -INFINITY;
+        unsigned char eligible[ng > 0 ? ng : 1];
+        for (int64_t i = 0; i < ng; i++) {
+            float dx = p[2 * b] - g[2 * i], dy = p[2 * b + 1] - g[2 * i + 1];
+            float d2 = (dx * dx + dy * dy) + h2;
+            float snr = (tx * ((1.0f / d2) * alpha)) / noise;
+            eligible[i] = mask[ng * b + i] && r[i] > 0 && snr >= thr;
+            out[i] = r[i];
+            if (eligible[i]) {
+                rate[i] = log2f(1.0f + snr);
+                if (rate[i] > best) best = rate[i];
+            }
+        }
+        int64_t pick = -1;
+        float pick_noise = -1.0f;
+        for (int64_t i = 0; i < ng; i++) {  /* exact ties at the best rate: the largest noise, first on equal */
+            if (eligible[i] && rate[i] == best && tie[ng * b + i] > pick_noise) { pick = i; pick_noise = tie[ng * b + i]; }
+        }
+        served[b] = pick;
+        if (pick < 0) { td[b] = 0.0f; continue; }
+        float dv = r[pick], cap = rate[pick] * t_hover;
+        float got = dv < cap ? dv : cap;
+        td[b] = got;
+        out[pick] = r[pick] - got;
+    }
+}
+"""
+
+# -ffp-contract=off: no fused multiply-add, so every product rounds as torch's does
+FLAGS = ("-O3", "-ffp-contract=off", "-fno-math-errno", "-shared", "-fPIC")
+
+LOADED = False  # read by physics.ou_step while torch.compile traces (a constant it guards on)
+_LIB: ctypes.CDLL | None = None
+_TRIED = False
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("UAVLAE_CACHE_DIR", "~/.cache/uavlae")).expanduser() / "ckernels"
+
+
+def _build(cc: str) -> Path:
+    """The shared library for SOURCE and FLAGS, built once per source, flags and compiler and
+    moved into place atomically (a concurrent or interrupted build leaves nothing half-written)."""
+    key = hashlib.sha256("\0".join((SOURCE, *FLAGS, cc)).encode()).hexdigest()[:16]
+    target = _cache_dir() / f"uavlae_ou_step_{key}.so"
+    if target.exists():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
+        src, out = Path(tmp) / "ou_step.c", Path(tmp) / "ou_step.so"
+        src.write_text(SOURCE)
+        proc = subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cc} exited with {proc.returncode}: {proc.stderr.strip()[:500]}")
+        os.replace(out, target)
+    return target
+
+
+def load() -> bool:
+    """Build (once) and load the kernel; ``True`` when ``torch.ops.uavlae.ou_step_cpu`` will use
+    it. Never raises: a missing compiler or a failed build warns and returns ``False``."""
+    global LOADED, _LIB, _TRIED
+    if _TRIED:
+        return LOADED
+    _TRIED = True
+    if os.environ.get("UAVLAE_C_KERNELS", "1") == "0":
+        return False
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if not cc:
+        warnings.warn("uavlae: no C compiler found ($CC, cc, gcc); the compiled step keeps its torch OU step")
+        return False
+    try:
+        lib = ctypes.CDLL(str(_build(cc)))
+    except Exception as exc:  # a build or load failure only costs speed
+        warnings.warn(f"uavlae: the C OU-step kernel could not be built ({exc}); the compiled step keeps its torch OU step")
+        return False
+    p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+    lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
+    lib.uavlae_ou_step.restype = None
+    lib.uavlae_serve.argtypes = [i64, i64, *([p] * 5), *([f32] * 6), p, p, p]
+    lib.uavlae_serve.restype = None
+    _LIB, LOADED = lib, True
+    return True
+
+
+_F32 = {"pos": 3, "vel": 3, "blocked": 3, "speed": 2, "heading_cos": 2, "heading_sin": 2, "retry_heading": 3}
+_BOOL = {"mask": 2, "blocked_mask": 2, "turn": 2}
+
+
+@torch.library.custom_op("uavlae::ou_step_cpu", mutates_args=())
+def ou_step_cpu(
+    pos: Tensor, vel: Tensor, mask: Tensor, blocked: Tensor, blocked_mask: Tensor, turn: Tensor,
+    speed: Tensor, heading_cos: Tensor, heading_sin: Tensor, retry_heading: Tensor,
+    x_size: float, y_size: float, t_fly: float,
+) -> tuple[Tensor, Tensor]:
+    """``physics.ou_step`` for ``pos``/``vel`` ``[B, K, 2]``, ``blocked`` ``[B, Z, 4]`` and the
+    slot's noise (``retry_heading`` ``[T, B, K]``), on CPU float32: ``(new_pos, new_vel)``."""
+    if _LIB is None:
+        raise RuntimeError("uavlae::ou_step_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
+    args = dict(pos=pos, vel=vel, mask=mask, blocked=blocked, blocked_mask=blocked_mask, turn=turn,
+                speed=speed, heading_cos=heading_cos, heading_sin=heading_sin, retry_heading=retry_heading)
+    for name, x in args.items():
+        want = torch.float32 if name in _F32 else torch.bool
+        dim = _F32.get(name) or _BOOL[name]
+        if x.device.type != "cpu" or x.dtype != want or x.dim() != dim:
+            raise ValueError(f"ou_step_cpu: {name} must be a {dim}-d CPU {want} tensor, got {x.dim()}-d {x.device.type} {x.dtype}")
+    b, k = mask.shape
+    z, t = blocked.shape[1], retry_heading.shape[0]
+    if pos.shape != (b, k, 2) or vel.shape != (b, k, 2) or blocked.shape != (b, z, 4) or blocked_mask.shape != (b, z) \
+            or retry_heading.shape != (t, b, k) or any(args[n].shape != (b, k) for n in ("turn", "speed", "heading_cos", "heading_sin")):
+        raise ValueError("ou_step_cpu: shapes must be pos/vel [B, K, 2], mask/turn/speed/heading_* [B, K], "
+                         f"blocked [B, Z, 4], blocked_mask [B, Z], retry_heading [T, B, K]; got {[tuple(x.shape) for x in args.values()]}")
+    c = {n: x.contiguous() for n, x in args.items()}
+    new_pos, new_vel = torch.empty((b, k, 2)), torch.empty((b, k, 2))
+    ptr = [c[n].data_ptr() for n in ("pos", "vel", "mask", "blocked", "blocked_mask", "turn", "speed",
+                                     "heading_cos", "heading_sin", "retry_heading")]
+    _LIB.uavlae_ou_step(b, k, z, t, *ptr, x_size, y_size, t_fly, new_pos.data_ptr(), new_vel.data_ptr())
+    return new_pos, new_vel
+
+
+@ou_step_cpu.register_fake
+def _(pos, vel, mask, blocked, blocked_mask, turn, speed, heading_cos, heading_sin, retry_heading, x_size, y_size, t_fly):
+    return torch.empty_like(pos), torch.empty_like(vel)
+
+
+@torch.library.custom_op("uavlae::serve_cpu", mutates_args=())
+def serve_cpu(
+    p: Tensor, ge_pos: Tensor, remaining: Tensor, mask: Tensor, tie_noise: Tensor,
+    altitude: float, tx_power: float, alpha: float, noise: float, threshold: float, t_hover: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``physics.channel`` then ``physics.serve_ge`` for DCU positions ``p`` ``[B, 2]`` and GEs
+    ``ge_pos`` ``[B, G, 2]`` on CPU float32: ``(slot data [B], served GE [B] (-1: none),
+    remaining data [B, G])``."""
+    if _LIB is None:
+        raise RuntimeError("uavlae::serve_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
+    b, g = mask.shape
+    want = {"p": (p, torch.float32, (b, 2)), "ge_pos": (ge_pos, torch.float32, (b, g, 2)),
+            "remaining": (remaining, torch.float32, (b, g)), "mask": (mask, torch.bool, (b, g)),
+            "tie_noise": (tie_noise, torch.float32, (b, g))}
+    for name, (x, dtype, shape) in want.items():
+        if x.device.type != "cpu" or x.dtype != dtype or tuple(x.shape) != shape:
+            raise ValueError(f"serve_cpu: {name} must be a CPU {dtype} tensor of shape {list(shape)}, "
+                             f"got {x.device.type} {x.dtype} {list(x.shape)}")
+    c = [x.contiguous() for x, _, _ in want.values()]
+    td, served, rem = torch.empty(b), torch.empty(b, dtype=torch.int64), torch.empty(b, g)
+    _LIB.uavlae_serve(b, g, *(x.data_ptr() for x in c), altitude * altitude, tx_power, alpha, noise, threshold,
+                      t_hover, td.data_ptr(), served.data_ptr(), rem.data_ptr())
+    return td, served, rem
+
+
+@serve_cpu.register_fake
+def _(p, ge_pos, remaining, mask, tie_noise, altitude, tx_power, alpha, noise, threshold, t_hover):
+    b = p.shape[0]
+    return p.new_empty(b), p.new_empty(b, dtype=torch.int64), torch.empty_like(remaining)
+
