@@ -144,3 +144,26 @@ def test_a_failed_build_warns_falls_back_and_leaves_nothing_behind(tmp_path):
     out = _load_in_subprocess({}, tmp_path)  # a real build into the fresh cache
     assert out.stdout.strip() == "True"
     assert [p.suffix for p in (tmp_path / "ckernels").iterdir()] == [".so"]
+
+
+def test_row_ranges_on_two_threads_give_the_one_thread_result():
+    g = torch.Generator().manual_seed(3)
+    b, k, z = 2048, 7, 6
+    pos, vel = torch.rand(b, k, 2, generator=g) * 500, (torch.rand(b, k, 2, generator=g) * 2 - 1) * 10
+    mask = torch.rand(b, k, generator=g) < 0.8
+    lo = torch.rand(b, z, 2, generator=g) * 450
+    blocked = torch.cat([lo, lo + 20 + torch.rand(b, z, 2, generator=g) * 150], -1)
+    bmask = torch.rand(b, z, generator=g) < 0.7
+    noise = ph.ou_noise((b, k), OU, M, g)
+    ge = (pos[:, :1] + torch.rand(b, 15, 2, generator=g) * 40 - 20).contiguous()
+    rem, gm, tie = torch.rand(b, 15, generator=g) * 3, torch.ones(b, 15, dtype=torch.bool), torch.rand(b, 15, generator=g)
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            results.append((*_ou_c(pos, vel, mask, blocked, bmask, noise), *_serve_c(pos[:, 0], ge, rem, gm, tie)))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(x, y) for x, y in zip(*results))
+    assert (results[0][0] != pos).any()  # the OUs moved

@@ -27,6 +27,7 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -72,8 +73,9 @@ static inline bool move_ok(float sx, float sy, float vx, float vy, float t, cons
     return true;
 }
 
-/* physics.ou_step with its noise given, for [B, K] OUs and [B, Z] blocked rectangles */
-void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, const float *pos,
+/* physics.ou_step with its noise given, for [B, K] OUs and [B, Z] blocked rectangles; the
+   retry headings of try j start at retry + j * retry_stride (rows may be a slice of the batch) */
+void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, int64_t retry_stride, const float *pos,
                     const float *vel, const bool *mask, const float *rects, const bool *rmask,
                     const bool *turn, const float *speed, const float *hcos, const float *hsin,
                     const float *retry, float xs, float ys, float t, float *npos, float *nvel) {
@@ -92,7 +94,7 @@ void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, const float 
                 /* same speed, the first valid retry heading, else hover */
                 float s = sqrtf(vx * vx + vy * vy), cx = 0.0f, cy = 0.0f;
                 for (int64_t j = 0; j < nt; j++) {
-                    float h = retry[j * nb * nk + i];
+                    float h = retry[j * retry_stride + i];
                     float tx = s * cosf(h), ty = s * sinf(h);
                     if (move_ok(px, py, tx, ty, t, r, rm, nz, xs, ys)) { cx = tx; cy = ty; break; }
                 }
@@ -192,12 +194,31 @@ def load() -> bool:
         warnings.warn(f"uavlae: the C OU-step kernel could not be built ({exc}); the compiled step keeps its torch OU step")
         return False
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-    lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
+    lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
     lib.uavlae_ou_step.restype = None
     lib.uavlae_serve.argtypes = [i64, i64, *([p] * 5), *([f32] * 6), p, p, p]
     lib.uavlae_serve.restype = None
     _LIB, LOADED = lib, True
     return True
+
+
+_POOL: ThreadPoolExecutor | None = None
+_MIN_ROWS_PER_THREAD = 512  # below this a thread costs more than it saves
+
+
+def _in_parallel(rows, b: int) -> None:
+    """``rows(lo, hi)`` over ``range(b)`` split into ``torch.get_num_threads()`` row ranges, run
+    side by side (ctypes releases the GIL during the C call); one call when single-threaded."""
+    global _POOL
+    n = min(torch.get_num_threads(), b // _MIN_ROWS_PER_THREAD)
+    if n <= 1:
+        rows(0, b)
+        return
+    if _POOL is None or _POOL._max_workers < n:
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="uavlae-ckernel")
+    cuts = [b * i // n for i in range(n + 1)]
+    for f in [_POOL.submit(rows, cuts[i], cuts[i + 1]) for i in range(n)]:
+        f.result()
 
 
 _F32 = {"pos": 3, "vel": 3, "blocked": 3, "speed": 2, "heading_cos": 2, "heading_sin": 2, "retry_heading": 3}
@@ -229,9 +250,16 @@ def ou_step_cpu(
                          f"blocked [B, Z, 4], blocked_mask [B, Z], retry_heading [T, B, K]; got {[tuple(x.shape) for x in args.values()]}")
     c = {n: x.contiguous() for n, x in args.items()}
     new_pos, new_vel = torch.empty((b, k, 2)), torch.empty((b, k, 2))
-    ptr = [c[n].data_ptr() for n in ("pos", "vel", "mask", "blocked", "blocked_mask", "turn", "speed",
-                                     "heading_cos", "heading_sin", "retry_heading")]
-    _LIB.uavlae_ou_step(b, k, z, t, *ptr, x_size, y_size, t_fly, new_pos.data_ptr(), new_vel.data_ptr())
+    order = ("pos", "vel", "mask", "blocked", "blocked_mask", "turn", "speed", "heading_cos", "heading_sin",
+             "retry_heading", "new_pos", "new_vel")
+    c.update(new_pos=new_pos, new_vel=new_vel)
+
+    def rows(lo: int, hi: int) -> None:  # rows lo..hi-1: every tensor is row-major in B except the tries
+        ptr = [c[n].data_ptr() + (lo * k if n == "retry_heading" else lo * c[n][0].numel()) * c[n].element_size()
+               for n in order]
+        _LIB.uavlae_ou_step(hi - lo, k, z, t, b * k, *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
+
+    _in_parallel(rows, b)
     return new_pos, new_vel
 
 
@@ -260,8 +288,13 @@ def serve_cpu(
                              f"got {x.device.type} {x.dtype} {list(x.shape)}")
     c = [x.contiguous() for x, _, _ in want.values()]
     td, served, rem = torch.empty(b), torch.empty(b, dtype=torch.int64), torch.empty(b, g)
-    _LIB.uavlae_serve(b, g, *(x.data_ptr() for x in c), altitude * altitude, tx_power, alpha, noise, threshold,
-                      t_hover, td.data_ptr(), served.data_ptr(), rem.data_ptr())
+    outs = [td, served, rem]
+
+    def rows(lo: int, hi: int) -> None:
+        ptr = [x.data_ptr() + lo * x[0].numel() * x.element_size() for x in (*c, *outs)]
+        _LIB.uavlae_serve(hi - lo, g, *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
+
+    _in_parallel(rows, b)
     return td, served, rem
 
 
