@@ -50,9 +50,9 @@ bench-env: $(STAMP)
 
 # This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
 .PHONY: bench-env-ab
-AB_BASE ?= 072c0d7
+AB_BASE ?= 206540d
 bench-env-ab: $(STAMP)
-	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE)
+	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64
 
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py

@@ -1,7 +1,7 @@
 """UAVEnv's step, this checkout against an earlier commit, side by side in one process.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/env_ab.py --base 072c0d7 [--batches 4096 64]
-        [--bursts 10] [--compiled 1]                      (make bench-env-ab)
+        [--bursts 10] [--compiled 1] [--threads 1]        (make bench-env-ab)
 
 Each variant's ``UAVEnv`` is imported from its own source tree (the base commit checked out with
 ``git worktree`` into a temporary folder, ``sys.modules`` swapped between the imports); then
@@ -38,7 +38,7 @@ def _import_env_class(root: Path):
         sys.path.remove(str(root))
 
 
-def measure(roots: dict[str, Path], batch: int, compiled: bool, bursts: int, calls: int) -> dict:
+def measure(roots: dict[str, Path], batch: int, compiled: bool, bursts: int, calls: int, clock=time.process_time) -> dict:
     envs = {name: _import_env_class(root)(batch_size=[batch], seed=0, compile_step=compiled) for name, root in roots.items()}
     acts = torch.rand(64, batch, 2, generator=torch.Generator().manual_seed(0)) * 2 - 1
     tds, warm = {}, {}
@@ -52,11 +52,11 @@ def measure(roots: dict[str, Path], batch: int, compiled: bool, bursts: int, cal
     k = 0
     for r in range(bursts):
         for name in (list(envs) if r % 2 == 0 else list(envs)[::-1]):
-            env, td, t = envs[name], tds[name], time.process_time()
+            env, td, t = envs[name], tds[name], clock()
             for i in range(calls):
                 td["action"] = acts[(k + i) % 64]
                 _, td = env.step_and_maybe_reset(td)
-            ms[name].append(1e3 * (time.process_time() - t) / calls)
+            ms[name].append(1e3 * (clock() - t) / calls)
             tds[name] = td
         k += calls
     base, new = ms["base"], ms["new"]
@@ -73,9 +73,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--batches", type=int, nargs="+", default=[4096, 64])
     p.add_argument("--compiled", type=int, default=1, choices=[0, 1])
     p.add_argument("--bursts", type=int, default=10)
+    p.add_argument("--threads", type=int, default=1,
+                   help="intra-op threads; above 1 the bursts are timed by wall clock (process CPU time "
+                        "would add the threads up)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "env_ab.json"))
     a = p.parse_args(argv)
-    torch.set_num_threads(1)
+    torch.set_num_threads(a.threads)
+    clock = time.process_time if a.threads == 1 else time.perf_counter
     from uavlae.machine import describe_machine
 
     rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", a.base], check=True, capture_output=True, text=True).stdout.strip()
@@ -86,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
         try:
             rows = []
             for b in a.batches:
-                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, max(20, 81920 // b))
+                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, max(20, 81920 // b), clock)
+                row["threads"], row["clock"] = a.threads, clock.__name__
                 print(json.dumps(row), flush=True)
                 rows.append(row)
         finally:
