@@ -21,7 +21,7 @@ M, OU = CFG.motion, CFG.ou
 
 def _ou_c(pos, vel, mask, blocked, bmask, noise):
     cos, sin = torch.cos(noise["heading"]), torch.sin(noise["heading"])
-    return torch.ops.uavlae.ou_step_cpu(pos, vel, mask, blocked, bmask, noise["turn"], noise["speed"], cos, sin,
+    return ckernels.ou_step_cpu(pos, vel, mask, blocked, bmask, noise["turn"], noise["speed"], cos, sin,
                                         noise["retry_heading"], 500.0, 500.0, M.t_fly)
 
 
@@ -77,7 +77,7 @@ def test_ou_step_matches_the_torch_reference(seed):
 
 def _serve_c(p, ge, rem, mask, tie):
     ch = CFG.channel
-    return torch.ops.uavlae.serve_cpu(p, ge, rem, mask, tie, CFG.area.altitude, CFG.ge.tx_power, ch.alpha,
+    return ckernels.serve_cpu(p, ge, rem, mask, tie, CFG.area.altitude, CFG.ge.tx_power, ch.alpha,
                                       ch.noise, ch.snr_threshold, M.t_hover)
 
 
@@ -121,7 +121,7 @@ def test_serve_breaks_exact_ties_by_the_noise_and_matches_the_torch_reference():
 def test_bad_input_names_the_tensor():
     pos = torch.zeros(2, 3, 2)
     with pytest.raises(ValueError, match="blocked_mask must be a 2-d CPU torch.bool"):
-        torch.ops.uavlae.ou_step_cpu(pos, pos, torch.ones(2, 3, dtype=torch.bool), torch.zeros(2, 1, 4),
+        ckernels.ou_step_cpu(pos, pos, torch.ones(2, 3, dtype=torch.bool), torch.zeros(2, 1, 4),
                                      torch.ones(2, 1), torch.zeros(2, 3, dtype=torch.bool), torch.zeros(2, 3),
                                      torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(4, 2, 3), 500.0, 500.0, 1.0)
     with pytest.raises(ValueError, match="ge_pos must be a CPU torch.float32 tensor of shape \\[2, 3, 2\\]"):

@@ -14,8 +14,9 @@ uses them, and ``tests/test_ckernels.py`` checks this kernel against them. The k
 built on first use with the C compiler (``$CC``, else ``cc``/``gcc``, the one Inductor needs
 anyway) into ``$UAVLAE_CACHE_DIR`` (default ``~/.cache/uavlae``), atomically; without a
 compiler, with ``UAVLAE_C_KERNELS=0``, or when the build fails (a warning names the cause), the
-compiled step keeps its torch OU step. It is registered as the custom op
-``torch.ops.uavlae.ou_step_cpu`` so that ``torch.compile`` calls it from inside its graph.
+compiled step keeps its torch code. The kernels are registered as torch custom ops
+(:data:`ou_step_cpu`, :data:`serve_cpu`) so that ``torch.compile`` calls them from inside its
+graph; batches below :data:`MIN_BATCH` keep the torch code.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -149,8 +151,15 @@ void uavlae_serve(int64_t nb, int64_t ng, const float *p, const float *ge, const
 FLAGS = ("-O3", "-ffp-contract=off", "-fno-math-errno", "-shared", "-fPIC")
 
 LOADED = False  # read by physics.ou_step while torch.compile traces (a constant it guards on)
-_LIB: ctypes.CDLL | None = None
 _TRIED = False
+# Below this many scenarios the custom ops' fixed cost per call (about 30 us each) outweighs what
+# the kernels save: smaller compiled batches keep the torch code (B = 64: x0.96 with the kernels).
+MIN_BATCH = 256
+# The library and the ops of this source, kept on ``sys`` so that importing this module again
+# (benchmarks/env_ab.py imports two source trees in one process) reuses them instead of
+# registering the same op name twice; ops of another source get other names.
+_KEY = hashlib.sha256("\0".join((SOURCE, *FLAGS)).encode()).hexdigest()[:12]
+_STATE = sys.__dict__.setdefault("_uavlae_ckernels", {}).setdefault(_KEY, {"lib": None, "ops": None})
 
 
 def _cache_dir() -> Path:
@@ -176,12 +185,15 @@ def _build(cc: str) -> Path:
 
 
 def load() -> bool:
-    """Build (once) and load the kernel; ``True`` when ``torch.ops.uavlae.ou_step_cpu`` will use
+    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu` and :data:`serve_cpu` can
     it. Never raises: a missing compiler or a failed build warns and returns ``False``."""
-    global LOADED, _LIB, _TRIED
+    global LOADED, _TRIED
     if _TRIED:
         return LOADED
     _TRIED = True
+    if _STATE["lib"] is not None:
+        LOADED = True
+        return True
     if os.environ.get("UAVLAE_C_KERNELS", "1") == "0":
         return False
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
@@ -198,7 +210,7 @@ def load() -> bool:
     lib.uavlae_ou_step.restype = None
     lib.uavlae_serve.argtypes = [i64, i64, *([p] * 5), *([f32] * 6), p, p, p]
     lib.uavlae_serve.restype = None
-    _LIB, LOADED = lib, True
+    _STATE["lib"], LOADED = lib, True
     return True
 
 
@@ -225,16 +237,16 @@ _F32 = {"pos": 3, "vel": 3, "blocked": 3, "speed": 2, "heading_cos": 2, "heading
 _BOOL = {"mask": 2, "blocked_mask": 2, "turn": 2}
 
 
-@torch.library.custom_op("uavlae::ou_step_cpu", mutates_args=())
-def ou_step_cpu(
+def _ou_step_impl(
     pos: Tensor, vel: Tensor, mask: Tensor, blocked: Tensor, blocked_mask: Tensor, turn: Tensor,
     speed: Tensor, heading_cos: Tensor, heading_sin: Tensor, retry_heading: Tensor,
     x_size: float, y_size: float, t_fly: float,
 ) -> tuple[Tensor, Tensor]:
     """``physics.ou_step`` for ``pos``/``vel`` ``[B, K, 2]``, ``blocked`` ``[B, Z, 4]`` and the
     slot's noise (``retry_heading`` ``[T, B, K]``), on CPU float32: ``(new_pos, new_vel)``."""
-    if _LIB is None:
-        raise RuntimeError("uavlae::ou_step_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
+    lib = _STATE["lib"]
+    if lib is None:
+        raise RuntimeError("ckernels.ou_step_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
     args = dict(pos=pos, vel=vel, mask=mask, blocked=blocked, blocked_mask=blocked_mask, turn=turn,
                 speed=speed, heading_cos=heading_cos, heading_sin=heading_sin, retry_heading=retry_heading)
     for name, x in args.items():
@@ -257,27 +269,26 @@ def ou_step_cpu(
     def rows(lo: int, hi: int) -> None:  # rows lo..hi-1: every tensor is row-major in B except the tries
         ptr = [c[n].data_ptr() + (lo * k if n == "retry_heading" else lo * c[n][0].numel()) * c[n].element_size()
                for n in order]
-        _LIB.uavlae_ou_step(hi - lo, k, z, t, b * k, *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
+        lib.uavlae_ou_step(hi - lo, k, z, t, b * k, *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
 
     _in_parallel(rows, b)
     return new_pos, new_vel
 
 
-@ou_step_cpu.register_fake
-def _(pos, vel, mask, blocked, blocked_mask, turn, speed, heading_cos, heading_sin, retry_heading, x_size, y_size, t_fly):
+def _ou_step_fake(pos, vel, mask, blocked, blocked_mask, turn, speed, heading_cos, heading_sin, retry_heading, x_size, y_size, t_fly):
     return torch.empty_like(pos), torch.empty_like(vel)
 
 
-@torch.library.custom_op("uavlae::serve_cpu", mutates_args=())
-def serve_cpu(
+def _serve_impl(
     p: Tensor, ge_pos: Tensor, remaining: Tensor, mask: Tensor, tie_noise: Tensor,
     altitude: float, tx_power: float, alpha: float, noise: float, threshold: float, t_hover: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``physics.channel`` then ``physics.serve_ge`` for DCU positions ``p`` ``[B, 2]`` and GEs
     ``ge_pos`` ``[B, G, 2]`` on CPU float32: ``(slot data [B], served GE [B] (-1: none),
     remaining data [B, G])``."""
-    if _LIB is None:
-        raise RuntimeError("uavlae::serve_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
+    lib = _STATE["lib"]
+    if lib is None:
+        raise RuntimeError("ckernels.serve_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
     b, g = mask.shape
     want = {"p": (p, torch.float32, (b, 2)), "ge_pos": (ge_pos, torch.float32, (b, g, 2)),
             "remaining": (remaining, torch.float32, (b, g)), "mask": (mask, torch.bool, (b, g)),
@@ -292,14 +303,26 @@ def serve_cpu(
 
     def rows(lo: int, hi: int) -> None:
         ptr = [x.data_ptr() + lo * x[0].numel() * x.element_size() for x in (*c, *outs)]
-        _LIB.uavlae_serve(hi - lo, g, *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
+        lib.uavlae_serve(hi - lo, g, *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
 
     _in_parallel(rows, b)
     return td, served, rem
 
 
-@serve_cpu.register_fake
-def _(p, ge_pos, remaining, mask, tie_noise, altitude, tx_power, alpha, noise, threshold, t_hover):
+def _serve_fake(p, ge_pos, remaining, mask, tie_noise, altitude, tx_power, alpha, noise, threshold, t_hover):
     b = p.shape[0]
     return p.new_empty(b), p.new_empty(b, dtype=torch.int64), torch.empty_like(remaining)
 
+
+
+def _register():
+    if _STATE["ops"] is None:
+        ou = torch.library.custom_op(f"uavlae::ou_step_cpu_{_KEY}", _ou_step_impl, mutates_args=())
+        ou.register_fake(_ou_step_fake)
+        serve = torch.library.custom_op(f"uavlae::serve_cpu_{_KEY}", _serve_impl, mutates_args=())
+        serve.register_fake(_serve_fake)
+        _STATE["ops"] = (ou, serve)
+    return _STATE["ops"]
+
+
+ou_step_cpu, serve_cpu = _register()

@@ -419,10 +419,11 @@ def ou_step(
     if (
         ckernels.LOADED and torch.compiler.is_compiling() and "heading_cos" in noise
         and pos.device.type == "cpu" and pos.dtype == torch.float32 and pos.dim() == 3
+        and pos.shape[0] >= ckernels.MIN_BATCH
         and vel.shape == pos.shape and blocked.shape[:-2] == pos.shape[:-2]
     ):
         # the compiled CPU step: the same OU step in C, one OU at a time (envs/ckernels.py)
-        return torch.ops.uavlae.ou_step_cpu(
+        return ckernels.ou_step_cpu(
             pos, vel, mask, blocked, blocked_mask, turn, new_speed, noise["heading_cos"], noise["heading_sin"],
             retry_heading, float(x_size), float(y_size), float(m.t_fly),
         )

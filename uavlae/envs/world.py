@@ -33,7 +33,10 @@ def _c_kernels(x: Tensor) -> bool:
     """Inside a CPU torch.compile graph of float32 tensors, with the C kernels built: parts of
     the step then run as the custom ops of :mod:`uavlae.envs.ckernels` (the same operations as
     the torch code beside each call, which stays the reference and the path everywhere else)."""
-    return ckernels.LOADED and torch.compiler.is_compiling() and x.device.type == "cpu" and x.dtype == torch.float32
+    return (
+        ckernels.LOADED and torch.compiler.is_compiling() and x.device.type == "cpu" and x.dtype == torch.float32
+        and x.shape[0] >= ckernels.MIN_BATCH
+    )
 
 
 def uses_geodesic(cfg: EnvConfig) -> bool:
@@ -207,7 +210,7 @@ def world_step_core(
     tie = noise["ge_tie"]
     if _c_kernels(p1):
         # the compiled CPU step: channel and service in C, the rate only for the eligible GEs
-        td, served, remaining = torch.ops.uavlae.serve_cpu(
+        td, served, remaining = ckernels.serve_cpu(
             p1, state["ge_pos"], state["ge_remaining"], state["ge_mask"], tie, float(a.altitude),
             float(cfg.ge.tx_power), float(cfg.channel.alpha), float(cfg.channel.noise),
             float(cfg.channel.snr_threshold), float(m.t_hover),
