@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu"]
+__all__ = ["applies", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu"]
 
 SOURCE = r"""
 #include <math.h>
@@ -162,6 +162,17 @@ _KEY = hashlib.sha256("\0".join((SOURCE, *FLAGS)).encode()).hexdigest()[:12]
 _STATE = sys.__dict__.setdefault("_uavlae_ckernels", {}).setdefault(_KEY, {"lib": None, "ops": None})
 
 
+def applies(x: Tensor) -> bool:
+    """Whether the step being traced runs the kernels: inside a CPU torch.compile graph, float32,
+    at least :data:`MIN_BATCH` scenarios (``x``: any ``[B, ...]`` tensor of the step), and
+    :func:`load` succeeded. Elsewhere the torch code beside each call runs: it stays the
+    reference, and the path on every other device."""
+    return (
+        LOADED and torch.compiler.is_compiling() and x.device.type == "cpu" and x.dtype == torch.float32
+        and x.shape[0] >= MIN_BATCH
+    )
+
+
 def _cache_dir() -> Path:
     return Path(os.environ.get("UAVLAE_CACHE_DIR", "~/.cache/uavlae")).expanduser() / "ckernels"
 
@@ -169,8 +180,7 @@ def _cache_dir() -> Path:
 def _build(cc: str) -> Path:
     """The shared library for SOURCE and FLAGS, built once per source, flags and compiler and
     moved into place atomically (a concurrent or interrupted build leaves nothing half-written)."""
-    key = hashlib.sha256("\0".join((SOURCE, *FLAGS, cc)).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"uavlae_ou_step_{key}.so"
+    target = _cache_dir() / f"uavlae_kernels_{_KEY}_{hashlib.sha256(cc.encode()).hexdigest()[:8]}.so"
     if target.exists():
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -185,8 +195,8 @@ def _build(cc: str) -> Path:
 
 
 def load() -> bool:
-    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu` and :data:`serve_cpu` can
-    it. Never raises: a missing compiler or a failed build warns and returns ``False``."""
+    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu` and :data:`serve_cpu`
+    can run. Never raises: a missing compiler or a failed build warns and returns ``False``."""
     global LOADED, _TRIED
     if _TRIED:
         return LOADED
@@ -198,12 +208,12 @@ def load() -> bool:
         return False
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if not cc:
-        warnings.warn("uavlae: no C compiler found ($CC, cc, gcc); the compiled step keeps its torch OU step")
+        warnings.warn("uavlae: no C compiler found ($CC, cc, gcc); the compiled step keeps its torch code")
         return False
     try:
         lib = ctypes.CDLL(str(_build(cc)))
     except Exception as exc:  # a build or load failure only costs speed
-        warnings.warn(f"uavlae: the C OU-step kernel could not be built ({exc}); the compiled step keeps its torch OU step")
+        warnings.warn(f"uavlae: the C kernels could not be built ({exc}); the compiled step keeps its torch code")
         return False
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
     lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
@@ -215,19 +225,20 @@ def load() -> bool:
 
 
 _POOL: ThreadPoolExecutor | None = None
+_POOL_WORKERS = 0
 _MIN_ROWS_PER_THREAD = 512  # below this a thread costs more than it saves
 
 
 def _in_parallel(rows, b: int) -> None:
     """``rows(lo, hi)`` over ``range(b)`` split into ``torch.get_num_threads()`` row ranges, run
     side by side (ctypes releases the GIL during the C call); one call when single-threaded."""
-    global _POOL
+    global _POOL, _POOL_WORKERS
     n = min(torch.get_num_threads(), b // _MIN_ROWS_PER_THREAD)
     if n <= 1:
         rows(0, b)
         return
-    if _POOL is None or _POOL._max_workers < n:
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="uavlae-ckernel")
+    if _POOL_WORKERS < n:
+        _POOL, _POOL_WORKERS = ThreadPoolExecutor(max_workers=n, thread_name_prefix="uavlae-ckernel"), n
     cuts = [b * i // n for i in range(n + 1)]
     for f in [_POOL.submit(rows, cuts[i], cuts[i + 1]) for i in range(n)]:
         f.result()
@@ -266,8 +277,8 @@ def _ou_step_impl(
              "retry_heading", "new_pos", "new_vel")
     c.update(new_pos=new_pos, new_vel=new_vel)
 
-    def rows(lo: int, hi: int) -> None:  # rows lo..hi-1: every tensor is row-major in B except the tries
-        ptr = [c[n].data_ptr() + (lo * k if n == "retry_heading" else lo * c[n][0].numel()) * c[n].element_size()
+    def rows(lo: int, hi: int) -> None:  # rows lo..hi-1: B is the first dimension, the tries' second
+        ptr = [c[n].data_ptr() + lo * c[n].stride(1 if n == "retry_heading" else 0) * c[n].element_size()
                for n in order]
         lib.uavlae_ou_step(hi - lo, k, z, t, b * k, *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
 
@@ -302,7 +313,7 @@ def _serve_impl(
     outs = [td, served, rem]
 
     def rows(lo: int, hi: int) -> None:
-        ptr = [x.data_ptr() + lo * x[0].numel() * x.element_size() for x in (*c, *outs)]
+        ptr = [x.data_ptr() + lo * x.stride(0) * x.element_size() for x in (*c, *outs)]
         lib.uavlae_serve(hi - lo, g, *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
 
     _in_parallel(rows, b)
@@ -312,7 +323,6 @@ def _serve_impl(
 def _serve_fake(p, ge_pos, remaining, mask, tie_noise, altitude, tx_power, alpha, noise, threshold, t_hover):
     b = p.shape[0]
     return p.new_empty(b), p.new_empty(b, dtype=torch.int64), torch.empty_like(remaining)
-
 
 
 def _register():

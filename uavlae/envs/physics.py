@@ -417,9 +417,7 @@ def ou_step(
     retry_heading = noise["retry_heading"]
 
     if (
-        ckernels.LOADED and torch.compiler.is_compiling() and "heading_cos" in noise
-        and pos.device.type == "cpu" and pos.dtype == torch.float32 and pos.dim() == 3
-        and pos.shape[0] >= ckernels.MIN_BATCH
+        ckernels.applies(pos) and "heading_cos" in noise and pos.dim() == 3
         and vel.shape == pos.shape and blocked.shape[:-2] == pos.shape[:-2]
     ):
         # the compiled CPU step: the same OU step in C, one OU at a time (envs/ckernels.py)

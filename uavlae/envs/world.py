@@ -29,16 +29,6 @@ STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
 GEO_KEY = "geo_field"  # [B, G + 1, H·W], only with reward.progress_metric = geodesic
 
 
-def _c_kernels(x: Tensor) -> bool:
-    """Inside a CPU torch.compile graph of float32 tensors, with the C kernels built: parts of
-    the step then run as the custom ops of :mod:`uavlae.envs.ckernels` (the same operations as
-    the torch code beside each call, which stays the reference and the path everywhere else)."""
-    return (
-        ckernels.LOADED and torch.compiler.is_compiling() and x.device.type == "cpu" and x.dtype == torch.float32
-        and x.shape[0] >= ckernels.MIN_BATCH
-    )
-
-
 def uses_geodesic(cfg: EnvConfig) -> bool:
     return cfg.reward.progress_metric == "geodesic" and (cfg.reward.progress_weight > 0 or cfg.ego_features)
 
@@ -208,7 +198,7 @@ def world_step_core(
 
     # Hover phase at L_{t+1}: TDMA service of at most one GE (SPEC §3).
     tie = noise["ge_tie"]
-    if _c_kernels(p1):
+    if ckernels.applies(p1):
         # the compiled CPU step: channel and service in C, the rate only for the eligible GEs
         td, served, remaining = ckernels.serve_cpu(
             p1, state["ge_pos"], state["ge_remaining"], state["ge_mask"], tie, float(a.altitude),
