@@ -167,3 +167,52 @@ def test_row_ranges_on_two_threads_give_the_one_thread_result():
         torch.set_num_threads(threads)
     assert all(torch.equal(x, y) for x, y in zip(*results))
     assert (results[0][0] != pos).any()  # the OUs moved
+
+
+def test_the_mt19937_replay_gives_the_standard_10000th_number():
+    # The C++ standard ([rand.predef]) fixes the 10000th output of mt19937 seeded with 5489 at
+    # 4123659995; torch.rand keeps its low 24 bits: 4123659995 = 0xF5CA_0EDB -> 0xCA0EDB = 13242075.
+    g = torch.Generator().manual_seed(5489)
+    u = ckernels.uniform(g, 10000)
+    assert u[-1].item() == 13242075 / 2**24
+    # and the first: 3499211612 = 0xD091_BB5C -> 0x91BB5C = 9550684
+    assert u[0].item() == 9550684 / 2**24
+
+
+@pytest.mark.parametrize("n", [ckernels.MT_MIN_DRAWS, 624 * 7 + 5, 100_003])
+def test_the_mt19937_replay_is_torch_rand_bit_for_bit(n):
+    assert ckernels._STATE["mt"]  # load() checked the replay against torch and turned it on
+    g, h = torch.Generator().manual_seed(11), torch.Generator().manual_seed(11)
+    torch.rand(333, generator=g), torch.rand(333, generator=h)  # a used generator: mid-block
+    want, got = torch.rand(n, generator=g), ckernels.uniform(h, n)
+    assert torch.equal(want, got)
+    assert torch.equal(g.get_state(), h.get_state())  # left as torch leaves it
+    assert torch.equal(torch.rand(1000, generator=g), torch.rand(1000, generator=h))
+
+
+def test_the_mt19937_replay_refuses_a_state_it_does_not_know_and_falls_back(monkeypatch):
+    st = torch.Generator().manual_seed(1).get_state()
+    bad = st.clone()
+    bad[8:12] = 0  # left = 0: no torch generator is ever in that state
+    out = torch.full((4,), -1.0)
+    assert ckernels._STATE["lib"].uavlae_mt_uniform(bad.data_ptr(), out.data_ptr(), 4) == 1
+    assert out.tolist() == [-1.0] * 4 and torch.equal(bad[12:], st[12:])  # nothing written
+    monkeypatch.setattr(ckernels, "_MT_STATE_BYTES", 1)  # as if torch's state layout changed
+    assert not ckernels._mt_self_check()
+    g, h = torch.Generator().manual_seed(2), torch.Generator().manual_seed(2)
+    assert torch.equal(ckernels.uniform(g, 5000), torch.rand(5000, generator=h))  # torch.rand itself
+
+
+def test_draw_noise_draws_the_same_numbers_through_the_replay(monkeypatch):
+    from uavlae.envs import UAVEnv
+    from uavlae.envs.world import draw_noise
+
+    env = UAVEnv(batch_size=[512], seed=0)
+    td = env.reset()
+    state = {k: td["state", k] for k in env.raw_state_keys}
+    fast = draw_noise(state, env.cfg, torch.Generator().manual_seed(4))
+    monkeypatch.setitem(ckernels._STATE, "mt", False)
+    slow = draw_noise(state, env.cfg, torch.Generator().manual_seed(4))
+    assert sorted(fast) == sorted(slow) == ["ge_tie", "heading", "retry_heading", "speed", "turn"]
+    assert all(torch.equal(fast[k], slow[k]) for k in fast)
+    assert fast["retry_heading"].shape == (CFG.ou.heading_tries, 512, env.layout.n_ou)

@@ -1,4 +1,5 @@
-"""A C kernel for the OU step of the compiled CPU step (``UAVEnv(compile_step=True)``).
+"""C kernels for the CPU step: the OU step and the GE service of the compiled step
+(``UAVEnv(compile_step=True)``), and the random draws of every CPU step.
 
 Inductor's C++ for the step runs scalar loops over the tiny entity dimensions (7 OUs x 6
 blocked rectangles x 2 coordinates); the OU move check and its heading retries were the
@@ -9,12 +10,18 @@ the operations of :func:`uavlae.envs.physics.ou_step` in the same order, in floa
 fused multiply-add, so decisions and positions match the torch version; the retried
 velocities may differ in the last bit (``cosf``/``sinf``/``sqrtf`` against ATen's).
 
+:func:`uniform` is ``torch.rand(n, generator=g)`` for a CPU generator, bit for bit, with the
+generator left in the state torch would leave it in: a replay of ATen's mt19937 on the
+generator's ``get_state()`` bytes, whose twist and tempering vectorise (ATen draws one number at
+a time). :func:`load` checks it against ``torch.rand`` and leaves it off, with a warning, if
+they differ (a torch whose generator is laid out differently).
+
 The torch functions in :mod:`uavlae.envs.physics` stay the reference: the eager env always
-uses them, and ``tests/test_ckernels.py`` checks this kernel against them. The kernel is
+uses them, and ``tests/test_ckernels.py`` checks these kernels against them. The kernels are
 built on first use with the C compiler (``$CC``, else ``cc``/``gcc``, the one Inductor needs
 anyway) into ``$UAVLAE_CACHE_DIR`` (default ``~/.cache/uavlae``), atomically; without a
 compiler, with ``UAVLAE_C_KERNELS=0``, or when the build fails (a warning names the cause), the
-compiled step keeps its torch code. The kernels are registered as torch custom ops
+step keeps its torch code. The OU and service kernels are registered as torch custom ops
 (:data:`ou_step_cpu`, :data:`serve_cpu`) so that ``torch.compile`` calls them from inside its
 graph; batches below :data:`MIN_BATCH` keep the torch code.
 """
@@ -35,12 +42,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["applies", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu"]
+__all__ = ["applies", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
 
 SOURCE = r"""
 #include <math.h>
 #include <stdbool.h>
 #include <stdint.h>
+#include <string.h>
 
 static inline float lo_(float a, float b) { return a < b ? a : b; }
 static inline float hi_(float a, float b) { return a > b ? a : b; }
@@ -145,6 +153,49 @@ void uavlae_serve(int64_t nb, int64_t ng, const float *p, const float *ge, const
         out[pick] = r[pick] - got;
     }
 }
+
+/* torch.rand(n, generator=g) for a CPU generator, replayed: ATen's mt19937 (the engine behind
+   torch.Generator on CPU) and its float32 uniform, (y & (2^24 - 1)) * 2^-24. `st` is the
+   generator's get_state() bytes: seed (int64), left (int32), seeded (int32), next (uint64),
+   then the 624 state words, one per uint64; it is advanced in place, as torch advances it.
+   The same numbers, several times faster: the twist and the tempering run as plain loops the
+   compiler vectorises, where ATen draws one number at a time. Returns 1 on a state it does not
+   know (nothing written), 0 otherwise. */
+#define MT_N 624
+#define MT_M 397
+static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
+    return (((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u);
+}
+
+int uavlae_mt_uniform(unsigned char *st, float *out, int64_t n) {
+    int32_t left, seeded;
+    uint64_t next;
+    uint32_t s[MT_N];
+    memcpy(&left, st + 8, 4); memcpy(&seeded, st + 12, 4); memcpy(&next, st + 16, 8);
+    if (!seeded || left < 1 || left > MT_N || next > MT_N) return 1;
+    for (int i = 0; i < MT_N; i++) { uint64_t w; memcpy(&w, st + 24 + 8 * i, 8); s[i] = (uint32_t)w; }
+    for (int64_t done = 0; done < n;) {
+        if (left == 1) {  /* ATen's next_state(); then left = 625 - next as after each draw */
+            int i = 0;
+            for (; i < MT_N - MT_M; i++) s[i] = s[i + MT_M] ^ mt_twist(s[i], s[i + 1]);
+            for (; i < MT_N - 1; i++) s[i] = s[i + MT_M - MT_N] ^ mt_twist(s[i], s[i + 1]);
+            s[MT_N - 1] = s[MT_M - 1] ^ mt_twist(s[MT_N - 1], s[0]);
+            left = MT_N + 1; next = 0;
+        }
+        int64_t take = left - 1 < n - done ? left - 1 : n - done;
+        const uint32_t *src = s + next;
+        float *dst = out + done;
+        for (int64_t j = 0; j < take; j++) {
+            uint32_t y = src[j];
+            y ^= y >> 11; y ^= (y << 7) & 0x9d2c5680u; y ^= (y << 15) & 0xefc60000u; y ^= y >> 18;
+            dst[j] = (float)(y & 0xffffffu) * (1.0f / 16777216.0f);
+        }
+        done += take; next += (uint64_t)take; left -= (int32_t)take;
+    }
+    memcpy(st + 8, &left, 4); memcpy(st + 16, &next, 8);
+    for (int i = 0; i < MT_N; i++) { uint64_t w = s[i]; memcpy(st + 24 + 8 * i, &w, 8); }
+    return 0;
+}
 """
 
 # -ffp-contract=off: no fused multiply-add, so every product rounds as torch's does
@@ -159,7 +210,7 @@ MIN_BATCH = 256
 # (benchmarks/env_ab.py imports two source trees in one process) reuses them instead of
 # registering the same op name twice; ops of another source get other names.
 _KEY = hashlib.sha256("\0".join((SOURCE, *FLAGS)).encode()).hexdigest()[:12]
-_STATE = sys.__dict__.setdefault("_uavlae_ckernels", {}).setdefault(_KEY, {"lib": None, "ops": None})
+_STATE = sys.__dict__.setdefault("_uavlae_ckernels", {}).setdefault(_KEY, {"lib": None, "ops": None, "mt": False})
 
 
 def applies(x: Tensor) -> bool:
@@ -208,20 +259,68 @@ def load() -> bool:
         return False
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if not cc:
-        warnings.warn("uavlae: no C compiler found ($CC, cc, gcc); the compiled step keeps its torch code")
+        warnings.warn("uavlae: no C compiler found ($CC, cc, gcc); the CPU step keeps its torch code")
         return False
     try:
         lib = ctypes.CDLL(str(_build(cc)))
     except Exception as exc:  # a build or load failure only costs speed
-        warnings.warn(f"uavlae: the C kernels could not be built ({exc}); the compiled step keeps its torch code")
+        warnings.warn(f"uavlae: the C kernels could not be built ({exc}); the CPU step keeps its torch code")
         return False
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
     lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
     lib.uavlae_ou_step.restype = None
     lib.uavlae_serve.argtypes = [i64, i64, *([p] * 5), *([f32] * 6), p, p, p]
     lib.uavlae_serve.restype = None
+    lib.uavlae_mt_uniform.argtypes = [p, p, i64]
+    lib.uavlae_mt_uniform.restype = ctypes.c_int
     _STATE["lib"], LOADED = lib, True
+    _STATE["mt"] = _mt_self_check()
+    if not _STATE["mt"]:
+        warnings.warn("uavlae: torch's CPU generator is not the mt19937 state that the C replay knows "
+                      "(a new torch?); the random draws stay torch.rand")
     return True
+
+
+# Below this many numbers get_state/set_state and the call cost more than ATen's draws save.
+MT_MIN_DRAWS = 2048
+_MT_STATE_BYTES = 5056  # sizeof(at::CPUGeneratorImplState) in torch 2.x; anything else: torch.rand
+
+
+def _mt_uniform(generator: torch.Generator, n: int) -> Tensor | None:
+    lib = _STATE["lib"]
+    st = generator.get_state()
+    if st.numel() != _MT_STATE_BYTES:
+        return None
+    out = torch.empty(n)
+    if lib.uavlae_mt_uniform(st.data_ptr(), out.data_ptr(), n) != 0:
+        return None
+    generator.set_state(st)
+    return out
+
+
+def _mt_self_check() -> bool:
+    """Whether the replay gives torch.rand's numbers and leaves the generator as torch does, over
+    draws that cross the 624-word twists, from a fresh and a used generator."""
+    for seed in (0, 2**40 + 7):
+        g, h = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+        for n in (1, 5, 623, 624, 625, 1500, 2):
+            want, got = torch.rand(n, generator=g), _mt_uniform(h, n)
+            if got is None or not torch.equal(want, got):
+                return False
+        if not torch.equal(g.get_state(), h.get_state()):
+            return False
+    return True
+
+
+def uniform(generator: torch.Generator, n: int) -> Tensor:
+    """``torch.rand(n, generator=generator)``: the same float32 numbers, and the generator left in
+    the same state, drawn several times faster by the C replay of ATen's mt19937 when
+    :func:`load` succeeded and checked it (``generator`` on CPU); else torch.rand itself."""
+    if _STATE.get("mt") and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
+        out = _mt_uniform(generator, n)
+        if out is not None:
+            return out
+    return torch.rand(n, generator=generator)
 
 
 _POOL: ThreadPoolExecutor | None = None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -385,15 +386,21 @@ def _retry(
 def ou_noise(
     shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig, generator: torch.Generator,
     device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
+    uniforms: Sequence[Tensor] | None = None,
 ) -> dict[str, Tensor]:
     """The random draws of one OU slot for OUs of shape ``[..., K]``: every tensor is drawn every
-    slot, so the random stream depends on the seed only, not on the data."""
-    kw = dict(generator=generator, device=device, dtype=dtype)
+    slot, so the random stream depends on the seed only, not on the data. ``uniforms``: the four
+    U[0, 1) tensors (turn, speed, heading: ``shape``; retries: ``[heading_tries, *shape]``)
+    already drawn, in this order, from ``generator`` (world.draw_noise draws them at once)."""
+    if uniforms is None:
+        kw = dict(generator=generator, device=device, dtype=dtype)
+        uniforms = [torch.rand(s, **kw) for s in (shape, shape, shape, (ou.heading_tries, *shape))]
+    u_turn, u_speed, u_heading, u_retry = uniforms
     return {
-        "turn": torch.rand(shape, **kw) < ou.p_turn,
-        "speed": torch.rand(shape, **kw) * m.v_max,
-        "heading": torch.rand(shape, **kw) * (2.0 * math.pi),
-        "retry_heading": torch.rand((ou.heading_tries, *shape), **kw) * (2.0 * math.pi),
+        "turn": u_turn < ou.p_turn,
+        "speed": u_speed * m.v_max,
+        "heading": u_heading * (2.0 * math.pi),
+        "retry_heading": u_retry * (2.0 * math.pi),
     }
 
 

@@ -105,8 +105,10 @@ class UAVEnv(EnvBase):
         self.layout = ObservationLayout(self.cfg)
         self.raw_state_keys = state_keys(self.cfg)
         self.compiled = bool(compile_step)
-        if self.compiled and self.device.type == "cpu":
-            ckernels.load()  # the compiled CPU step's OU step in C (falls back to torch's, with a warning)
+        if self.device.type == "cpu":
+            # the C kernels (built once; without them torch's code, with a warning): the random
+            # draws of every CPU step, the OU step and the GE service of the compiled one
+            ckernels.load()
         self._core = self._make_core(self.compiled)
         self._fixed: TensorDictBase | None = None
         self._pool: TensorDictBase | None = None
