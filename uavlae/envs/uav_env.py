@@ -181,7 +181,7 @@ class UAVEnv(EnvBase):
             device=self.device,
         )
         # what a root coming from step_mdp must hold for maybe_reset's row-wise path
-        self._reset_keys_expected = ["observation", *(("state", k) for k in self.raw_state_keys)]
+        self._reset_keys_expected = {"observation", *(("state", k) for k in self.raw_state_keys)}
         self.action_spec = Bounded(-1.0, 1.0, shape=(B, 2), dtype=f, device=self.device)
         self.reward_spec = u(1)
         self.done_spec = Composite(
@@ -314,11 +314,10 @@ class UAVEnv(EnvBase):
             return tensordict
         if n == self.batch_size[0]:
             return super().maybe_reset(tensordict)
-        keys = tensordict.keys(True, True)
-        if any(k not in keys for k in self._reset_keys_expected):
-            return super().maybe_reset(tensordict)
         items = list(tensordict.items(True, True))
-        if any(not isinstance(v, torch.Tensor) or (isinstance(k, tuple) and len(k) > 2) for k, v in items):
+        if not self._reset_keys_expected <= {k for k, _ in items} or any(
+            not isinstance(v, torch.Tensor) or (isinstance(k, tuple) and len(k) > 2) for k, v in items
+        ):
             return super().maybe_reset(tensordict)  # not the flat two-level layout of tensors built below
         idx = rows.nonzero().squeeze(-1)
         fresh = self._fresh_rows(n, idx)
