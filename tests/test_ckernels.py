@@ -216,3 +216,36 @@ def test_draw_noise_draws_the_same_numbers_through_the_replay(monkeypatch):
     assert sorted(fast) == sorted(slow) == ["ge_tie", "heading", "retry_heading", "speed", "turn"]
     assert all(torch.equal(fast[k], slow[k]) for k in fast)
     assert fast["retry_heading"].shape == (CFG.ou.heading_tries, 512, env.layout.n_ou)
+
+
+def _grid_bits(*patterns):
+    """int64 [1, ny, nx]: bit s of each cell from patterns[s] (rows of '1' free / '0' blocked)."""
+    rows = [[sum(1 << s for s, p in enumerate(patterns) if p[y][x] == "1") for x in range(len(patterns[0][0]))]
+            for y in range(len(patterns[0]))]
+    return torch.tensor([rows], dtype=torch.int64)
+
+
+def test_flood_follows_a_spiral_and_stops_at_a_wall():
+    spiral = ["11111", "00001", "11101", "10001", "11111"]  # one corridor, four turns against the raster
+    wall = ["11011", "11011", "11011", "11011", "11011"]  # column x = 2 blocked
+    free = _grid_bits(spiral, wall)
+    seed = _grid_bits(["10000"] + ["00000"] * 4, ["10000"] + ["00000"] * 4)
+    reached = ckernels.flood(free, seed)
+    left_of_wall = ["11000"] * 5
+    assert torch.equal(reached, _grid_bits(spiral, left_of_wall))  # every spiral cell; only x < 2
+    assert torch.equal(seed, _grid_bits(["10000"] + ["00000"] * 4, ["10000"] + ["00000"] * 4))  # not written
+    assert ckernels.flood(free.int(), seed.int()) is None  # not int64: the torch flood
+
+
+def test_connectivity_check_gives_the_torch_flood_s_answer(monkeypatch):
+    from uavlae.envs import scenario as sc
+
+    g = torch.Generator().manual_seed(0)
+    td = sc.sample_scenarios(CFG, 256, g)
+    lo = torch.rand(256, td["bz"].shape[1], 2, generator=g) * 400  # big random buildings: many cut off
+    td["bz"] = torch.cat([lo, lo + torch.rand(256, td["bz"].shape[1], 2, generator=g) * 200], -1).clamp(max=500)
+    td["bz_mask"] = torch.ones_like(td["bz_mask"])
+    fast = sc.check_connectivity(CFG, td)
+    monkeypatch.setitem(ckernels._STATE, "lib", None)
+    slow = sc.check_connectivity(CFG, td)
+    assert 0.1 < fast.float().mean() < 0.9 and torch.equal(fast, slow)

@@ -34,6 +34,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
+from uavlae.envs import ckernels
 from uavlae.envs.config import EnvConfig
 
 __all__ = [
@@ -256,6 +257,9 @@ def _connected(cfg: EnvConfig, obst: Tensor, obst_mask: Tensor, start: Tensor, t
     def all_reached(r: Tensor) -> Tensor:
         return (_bits_at(r, bt, t_idx) | ~target_mask).all(-1)
 
+    reached = ckernels.flood(free, seed)  # the whole component, in C (the same cells)
+    if reached is not None:
+        return all_reached(reached)
     runs = {dim: _runs_free(free, dim) for dim in (1, 2)}
     reached = seed.clone()
     for _ in range(grid.nx * grid.ny):
