@@ -37,7 +37,6 @@ import subprocess
 import sys
 import tempfile
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -84,12 +83,22 @@ static inline bool move_ok(float sx, float sy, float vx, float vy, float t, cons
     return true;
 }
 
+/* Rows split over `nth` OpenMP threads: the runtime torch and Inductor's kernels use (one
+   libgomp), so its threads are the ones already waiting for the next parallel loop. */
+#ifdef _OPENMP
+#define ROWS_PARALLEL _Pragma("omp parallel for num_threads(nth) schedule(static) if (nth > 1)")
+#else
+#define ROWS_PARALLEL
+#endif
+
 /* physics.ou_step with its noise given, for [B, K] OUs and [B, Z] blocked rectangles; the
-   retry headings of try j start at retry + j * retry_stride (rows may be a slice of the batch) */
-void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, int64_t retry_stride, const float *pos,
+   retry headings of try j start at retry + j * B * K */
+void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, int nth, const float *pos,
                     const float *vel, const bool *mask, const float *rects, const bool *rmask,
                     const bool *turn, const float *speed, const float *hcos, const float *hsin,
                     const float *retry, float xs, float ys, float t, float *npos, float *nvel) {
+    const int64_t retry_stride = nb * nk;
+    ROWS_PARALLEL
     for (int64_t b = 0; b < nb; b++) {
         const float *r = rects + 4 * nz * b;
         const bool *rm = rmask + nz * b;
@@ -119,12 +128,13 @@ void uavlae_ou_step(int64_t nb, int64_t nk, int64_t nz, int64_t nt, int64_t retr
 
 /* physics.channel then physics.serve_ge for [B] DCU positions and [B, G] GEs: the rate (a
    log2) is computed only for the eligible GEs, the only ones serve_ge can pick */
-void uavlae_serve(int64_t nb, int64_t ng, const float *p, const float *ge, const float *rem,
+void uavlae_serve(int64_t nb, int64_t ng, int nth, const float *p, const float *ge, const float *rem,
                   const bool *mask, const float *tie, float h2, float tx, float alpha,
                   float noise, float thr, float t_hover, float *td, int64_t *served,
                   float *rem_new) {
-    float rate[ng > 0 ? ng : 1];
+    ROWS_PARALLEL
     for (int64_t b = 0; b < nb; b++) {
+        float rate[ng > 0 ? ng : 1];
         const float *g = ge + 2 * ng * b;
         const float *r = rem + ng * b;
         float *out = rem_new + ng * b;
@@ -159,7 +169,8 @@ void uavlae_serve(int64_t nb, int64_t ng, const float *p, const float *ge, const
    [nb, ny, nx] words, bit s of a word the cell of scenario 64 w + s. `reached` (the seeds, all
    free) grows to the whole 4-neighbour free component of its seeds: raster passes forward
    (from the west and south neighbours) and backward (east, north) until one changes nothing. */
-void uavlae_flood(int64_t nb, int64_t ny, int64_t nx, const int64_t *free_, int64_t *reached) {
+void uavlae_flood(int64_t nb, int64_t ny, int64_t nx, int nth, const int64_t *free_, int64_t *reached) {
+    ROWS_PARALLEL
     for (int64_t w = 0; w < nb; w++) {
         const uint64_t *f = (const uint64_t *)free_ + w * ny * nx;
         uint64_t *r = (uint64_t *)reached + w * ny * nx;
@@ -231,6 +242,8 @@ int uavlae_mt_uniform(unsigned char *st, float *out, int64_t n) {
 
 # -ffp-contract=off: no fused multiply-add, so every product rounds as torch's does
 FLAGS = ("-O3", "-ffp-contract=off", "-fno-math-errno", "-shared", "-fPIC")
+# OpenMP (the libgomp torch loads, found by its soname) when the compiler has it, else one thread
+OPENMP_FLAGS = ("-fopenmp",)
 
 LOADED = False  # read by physics.ou_step while torch.compile traces (a constant it guards on)
 _TRIED = False
@@ -240,7 +253,7 @@ MIN_BATCH = 256
 # The library and the ops of this source, kept on ``sys`` so that importing this module again
 # (benchmarks/env_ab.py imports two source trees in one process) reuses them instead of
 # registering the same op name twice; ops of another source get other names.
-_KEY = hashlib.sha256("\0".join((SOURCE, *FLAGS)).encode()).hexdigest()[:12]
+_KEY = hashlib.sha256("\0".join((SOURCE, *FLAGS, *OPENMP_FLAGS)).encode()).hexdigest()[:12]
 _STATE = sys.__dict__.setdefault("_uavlae_ckernels", {}).setdefault(_KEY, {"lib": None, "ops": None, "mt": False})
 
 
@@ -260,20 +273,26 @@ def _cache_dir() -> Path:
 
 
 def _build(cc: str) -> Path:
-    """The shared library for SOURCE and FLAGS, built once per source, flags and compiler and
-    moved into place atomically (a concurrent or interrupted build leaves nothing half-written)."""
-    target = _cache_dir() / f"uavlae_kernels_{_KEY}_{hashlib.sha256(cc.encode()).hexdigest()[:8]}.so"
-    if target.exists():
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
-        src, out = Path(tmp) / "ou_step.c", Path(tmp) / "ou_step.so"
-        src.write_text(SOURCE)
-        proc = subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
-        if proc.returncode != 0:
-            raise RuntimeError(f"{cc} exited with {proc.returncode}: {proc.stderr.strip()[:500]}")
-        os.replace(out, target)
-    return target
+    """The shared library for SOURCE and FLAGS, with OpenMP if the compiler has it, built once per
+    source, flags and compiler and moved into place atomically (a concurrent or interrupted build
+    leaves nothing half-written)."""
+    stem = _cache_dir() / f"uavlae_kernels_{_KEY}_{hashlib.sha256(cc.encode()).hexdigest()[:8]}"
+    variants = [(Path(f"{stem}.so"), (*FLAGS, *OPENMP_FLAGS)), (Path(f"{stem}_serial.so"), FLAGS)]
+    for target, _ in variants:
+        if target.exists():
+            return target
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    error = ""
+    for target, flags in variants:
+        with tempfile.TemporaryDirectory(dir=stem.parent, prefix=".build-") as tmp:
+            src, out = Path(tmp) / "uavlae_kernels.c", Path(tmp) / "uavlae_kernels.so"
+            src.write_text(SOURCE)
+            proc = subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
+            if proc.returncode == 0:
+                os.replace(out, target)
+                return target
+            error = f"{cc} exited with {proc.returncode}: {proc.stderr.strip()[:500]}"
+    raise RuntimeError(error)
 
 
 def load() -> bool:
@@ -298,11 +317,11 @@ def load() -> bool:
         warnings.warn(f"uavlae: the C kernels could not be built ({exc}); the CPU step keeps its torch code")
         return False
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-    lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, i64, *([p] * 10), f32, f32, f32, p, p]
+    lib.uavlae_ou_step.argtypes = [i64, i64, i64, i64, ctypes.c_int, *([p] * 10), f32, f32, f32, p, p]
     lib.uavlae_ou_step.restype = None
-    lib.uavlae_serve.argtypes = [i64, i64, *([p] * 5), *([f32] * 6), p, p, p]
+    lib.uavlae_serve.argtypes = [i64, i64, ctypes.c_int, *([p] * 5), *([f32] * 6), p, p, p]
     lib.uavlae_serve.restype = None
-    lib.uavlae_flood.argtypes = [i64, i64, i64, p, p]
+    lib.uavlae_flood.argtypes = [i64, i64, i64, ctypes.c_int, p, p]
     lib.uavlae_flood.restype = None
     lib.uavlae_mt_uniform.argtypes = [p, p, i64]
     lib.uavlae_mt_uniform.restype = ctypes.c_int
@@ -356,24 +375,12 @@ def uniform(generator: torch.Generator, n: int) -> Tensor:
     return torch.rand(n, generator=generator)
 
 
-_POOL: ThreadPoolExecutor | None = None
-_POOL_WORKERS = 0
 _MIN_ROWS_PER_THREAD = 512  # below this a thread costs more than it saves
 
 
-def _in_parallel(rows, b: int) -> None:
-    """``rows(lo, hi)`` over ``range(b)`` split into ``torch.get_num_threads()`` row ranges, run
-    side by side (ctypes releases the GIL during the C call); one call when single-threaded."""
-    global _POOL, _POOL_WORKERS
-    n = min(torch.get_num_threads(), b // _MIN_ROWS_PER_THREAD)
-    if n <= 1:
-        rows(0, b)
-        return
-    if _POOL_WORKERS < n:
-        _POOL, _POOL_WORKERS = ThreadPoolExecutor(max_workers=n, thread_name_prefix="uavlae-ckernel"), n
-    cuts = [b * i // n for i in range(n + 1)]
-    for f in [_POOL.submit(rows, cuts[i], cuts[i + 1]) for i in range(n)]:
-        f.result()
+def _threads(rows: int, per_thread: int = _MIN_ROWS_PER_THREAD) -> int:
+    """How many of torch's intra-op threads the kernels split ``rows`` over."""
+    return max(1, min(torch.get_num_threads(), rows // per_thread))
 
 
 def flood(free: Tensor, seed: Tensor) -> Tensor | None:
@@ -386,7 +393,7 @@ def flood(free: Tensor, seed: Tensor) -> Tensor | None:
             or seed.dtype != torch.int64 or free.device.type != "cpu" or seed.device.type != "cpu"):
         return None
     free, reached = free.contiguous(), seed.clone(memory_format=torch.contiguous_format)
-    lib.uavlae_flood(*free.shape, free.data_ptr(), reached.data_ptr())
+    lib.uavlae_flood(*free.shape, _threads(free.shape[0], 1), free.data_ptr(), reached.data_ptr())
     return reached
 
 
@@ -423,12 +430,8 @@ def _ou_step_impl(
              "retry_heading", "new_pos", "new_vel")
     c.update(new_pos=new_pos, new_vel=new_vel)
 
-    def rows(lo: int, hi: int) -> None:  # rows lo..hi-1: B is the first dimension, the tries' second
-        ptr = [c[n].data_ptr() + lo * c[n].stride(1 if n == "retry_heading" else 0) * c[n].element_size()
-               for n in order]
-        lib.uavlae_ou_step(hi - lo, k, z, t, b * k, *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
-
-    _in_parallel(rows, b)
+    ptr = [c[n].data_ptr() for n in order]
+    lib.uavlae_ou_step(b, k, z, t, _threads(b), *ptr[:10], x_size, y_size, t_fly, *ptr[10:])
     return new_pos, new_vel
 
 
@@ -458,11 +461,8 @@ def _serve_impl(
     td, served, rem = torch.empty(b), torch.empty(b, dtype=torch.int64), torch.empty(b, g)
     outs = [td, served, rem]
 
-    def rows(lo: int, hi: int) -> None:
-        ptr = [x.data_ptr() + lo * x.stride(0) * x.element_size() for x in (*c, *outs)]
-        lib.uavlae_serve(hi - lo, g, *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
-
-    _in_parallel(rows, b)
+    ptr = [x.data_ptr() for x in (*c, *outs)]
+    lib.uavlae_serve(b, g, _threads(b), *ptr[:5], altitude * altitude, tx_power, alpha, noise, threshold, t_hover, *ptr[5:])
     return td, served, rem
 
 
