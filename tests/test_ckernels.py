@@ -146,6 +146,17 @@ def test_a_failed_build_warns_falls_back_and_leaves_nothing_behind(tmp_path):
     assert [p.suffix for p in (tmp_path / "ckernels").iterdir()] == [".so"]
 
 
+def test_a_compiler_without_openmp_gets_the_one_thread_build(tmp_path):
+    cc = tmp_path / "cc-no-openmp"
+    cc.write_text('#!/bin/sh\ncase " $* " in *" -fopenmp "*) echo "no OpenMP here" >&2; exit 1;; esac\nexec cc "$@"\n')
+    cc.chmod(0o755)
+    cache = tmp_path / "cache"
+    out = _load_in_subprocess({"CC": str(cc)}, cache)
+    assert out.stdout.strip() == "True" and out.stderr == ""
+    built = list((cache / "ckernels").iterdir())
+    assert [p.name.endswith("_serial.so") for p in built] == [True]
+
+
 def test_row_ranges_on_two_threads_give_the_one_thread_result():
     g = torch.Generator().manual_seed(3)
     b, k, z = 2048, 7, 6
