@@ -535,3 +535,32 @@ def test_float64_dtype_preserved():
     assert np_.dtype == nv.dtype == torch.float64
     assert ph.point_rect_distance(p, e, torch.zeros(1, 0, dtype=torch.bool)).dtype == torch.float64
     assert ph.propulsion_power(p[..., 0], E).dtype == torch.float64
+
+
+def test_observation_lists_visible_ous_nearest_first():
+    from uavlae.envs import UAVEnv
+    from uavlae.envs.world import _stable_order
+
+    # stable: equal keys keep their index order, absent (inf) ones go last
+    assert _stable_order(torch.tensor([[3.0, INF, 1.0, 3.0, 0.5]])).tolist() == [[4, 2, 0, 3, 1]]
+    env = UAVEnv(batch_size=[1], seed=0)
+    td = env.reset()
+    s = {k: td["state", k].clone() for k in env.raw_state_keys}
+    k, pr = env.layout.n_ou, env.cfg.safety.perception_radius
+    s["position"] = torch.tensor([[100.0, 100.0]])
+    pos = torch.full((1, k, 2), 400.0)  # far away: not visible
+    pos[0, :5] = torch.tensor([[115.0, 100.0], [110.0, 100.0], [100.0, 120.0], [100.0, 90.0], [130.0, 100.0]])
+    s["ou_pos"], s["ou_vel"] = pos, torch.arange(2.0 * k).view(1, k, 2)
+    s["ou_mask"] = torch.ones(1, k, dtype=torch.bool)
+    s["ou_mask"][0, 3] = False  # the one 10 m south is absent
+    obs = env.layout.build(s)[0]
+    start = 5 * env.layout.n_ge + 5 * sum(env.layout.n_zone)
+    rel, vel, vis = obs[start : start + 2 * k], obs[start + 2 * k : start + 4 * k], obs[start + 4 * k : start + 5 * k]
+    # by hand, within the 20 m radius: 10 m east (OU 1), 15 m east (OU 0), 20 m north (OU 2);
+    # not 30 m east (OU 4); the rest zero
+    assert pr == 20.0
+    want_rel = [10.0, 0.0, 15.0, 0.0, 0.0, 20.0] + [0.0] * (2 * k - 6)
+    torch.testing.assert_close(rel * pr, torch.tensor(want_rel), rtol=0, atol=1e-4)
+    v_max = env.cfg.motion.v_max
+    torch.testing.assert_close(vel * v_max, torch.tensor([2.0, 3.0, 0.0, 1.0, 4.0, 5.0] + [0.0] * (2 * k - 6)))
+    assert vis.tolist() == [1.0, 1.0, 1.0] + [0.0] * (k - 3)

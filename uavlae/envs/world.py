@@ -265,6 +265,19 @@ def world_step_core(
     return nxt, events, terms, cost, terminated, truncated
 
 
+def _stable_order(key: Tensor) -> Tensor:
+    """``torch.argsort(key, dim=-1, stable=True)`` for a short last dimension (the K OUs), from
+    the K x K comparisons: the rank of entry i is the number of smaller entries plus the equal
+    ones before it, and slot r takes the entry of rank r. Elementwise, so the compiled step fuses
+    it into its loops (argsort was a separate 0.3 ms sort of 4096 rows of 7 at B = 4096)."""
+    k = key.shape[-1]
+    a, b = key.unsqueeze(-1), key.unsqueeze(-2)  # a[..., i, j] = key_i, b[..., i, j] = key_j
+    before = torch.ones(k, k, dtype=torch.bool, device=key.device).tril(-1)  # j < i
+    rank = ((b < a) | ((b == a) & before)).sum(-1)  # [..., K]
+    slots = torch.arange(k, device=key.device)
+    return (rank.unsqueeze(-2) == slots.unsqueeze(-1)).to(torch.uint8).argmax(-1)  # [..., r]: i of rank r
+
+
 class ObservationLayout:
     """Normalisation constants and sizes of the flat observation (SPEC §6)."""
 
@@ -325,7 +338,7 @@ class ObservationLayout:
         rel = s["ou_pos"] - p.unsqueeze(-2)
         dist = torch.linalg.vector_norm(rel, dim=-1)
         visible = s["ou_mask"] & (dist <= cfg.safety.perception_radius)
-        order = torch.argsort(dist.masked_fill(~visible, float("inf")), dim=-1)
+        order = _stable_order(dist.masked_fill(~visible, float("inf")))
         vis = torch.gather(visible, -1, order).to(p.dtype)
         idx2 = order.unsqueeze(-1).expand(-1, -1, 2)
         # (x / scale) * vis == (x * vis) / scale exactly: vis is 0 or 1
