@@ -50,9 +50,11 @@ bench-env: $(STAMP)
 
 # This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
 .PHONY: bench-env-ab
-AB_BASE ?= 206540d
+AB_BASE ?= 43fd6e0
 bench-env-ab: $(STAMP)
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64
+	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \
+		--out benchmarks/env_ab_2threads.json
 
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py

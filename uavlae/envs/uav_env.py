@@ -75,7 +75,9 @@ class UAVEnv(EnvBase):
             ``benchmarks/env_throughput.py --compile``). Worth it for long collection runs,
             not for tests or short evaluations. On CPU, the OU step and the GE service run
             inside the graph as small C kernels (:mod:`uavlae.envs.ckernels`, built once with
-            the C compiler; x1.3 at B = 1024-4096, ``benchmarks/env_ab.json``). Events, flags
+            the C compiler, split over OpenMP threads). Every CPU env, compiled or not, also
+            draws its random numbers through the C replay of torch's generator (the same
+            numbers) and floods the sampler's connectivity grid in C. Events, flags
             and integer state equal the eager ones exactly; floats may differ in the last bit
             (Inductor's fused float32 math, ``cosf``/``log2f``).
             Not TorchRL's own ``compile=`` keyword: EnvBase's metaclass takes that one and
