@@ -1,6 +1,7 @@
 """C kernels for the CPU step: the OU step and the GE service of the compiled step
 (``UAVEnv(compile_step=True)``), the random draws of every CPU step, and the flood fill of the
-scenario sampler's connectivity check (:func:`flood`: the same component, x1.6 sampling).
+scenario sampler's connectivity check (:func:`flood`: the same component; sampling x1.3 and
+the draws x6, ``benchmarks/ckernels_ab.json``).
 
 Inductor's C++ for the step runs scalar loops over the tiny entity dimensions (7 OUs x 6
 blocked rectangles x 2 coordinates); the OU move check and its heading retries were the
@@ -296,8 +297,9 @@ def _build(cc: str) -> Path:
 
 
 def load() -> bool:
-    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu` and :data:`serve_cpu`
-    can run. Never raises: a missing compiler or a failed build warns and returns ``False``."""
+    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu`, :data:`serve_cpu` and
+    :func:`flood` can run (:func:`uniform` also needs its check against ``torch.rand`` to pass).
+    Never raises: a missing compiler or a failed build warns and returns ``False``."""
     global LOADED, _TRIED
     if _TRIED:
         return LOADED
@@ -368,7 +370,7 @@ def uniform(generator: torch.Generator, n: int) -> Tensor:
     """``torch.rand(n, generator=generator)``: the same float32 numbers, and the generator left in
     the same state, drawn several times faster by the C replay of ATen's mt19937 when
     :func:`load` succeeded and checked it (``generator`` on CPU); else torch.rand itself."""
-    if _STATE.get("mt") and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
+    if _STATE["mt"] and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
         out = _mt_uniform(generator, n)
         if out is not None:
             return out

@@ -383,6 +383,12 @@ def _retry(
     return fn(pos, v, ok, headings, blocked, blocked_mask, x_size, y_size, t_fly)
 
 
+def ou_noise_shapes(shape: torch.Size | tuple[int, ...], ou: OUConfig) -> list[torch.Size]:
+    """The shapes of :func:`ou_noise`'s four U[0, 1) draws, in the order it draws them."""
+    shape = torch.Size(shape)
+    return [shape, shape, shape, torch.Size((ou.heading_tries, *shape))]
+
+
 def ou_noise(
     shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig, generator: torch.Generator,
     device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
@@ -394,7 +400,7 @@ def ou_noise(
     already drawn, in this order, from ``generator`` (world.draw_noise draws them at once)."""
     if uniforms is None:
         kw = dict(generator=generator, device=device, dtype=dtype)
-        uniforms = [torch.rand(s, **kw) for s in (shape, shape, shape, (ou.heading_tries, *shape))]
+        uniforms = [torch.rand(s, **kw) for s in ou_noise_shapes(shape, ou)]
     u_turn, u_speed, u_heading, u_retry = uniforms
     return {
         "turn": u_turn < ou.p_turn,

@@ -109,7 +109,8 @@ class UAVEnv(EnvBase):
         self.compiled = bool(compile_step)
         if self.device.type == "cpu":
             # the C kernels (built once; without them torch's code, with a warning): the random
-            # draws of every CPU step, the OU step and the GE service of the compiled one
+            # draws and the sampler's connectivity flood of every CPU env, the OU step and the GE
+            # service of the compiled step
             ckernels.load()
         self._core = self._make_core(self.compiled)
         self._fixed: TensorDictBase | None = None

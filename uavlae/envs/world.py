@@ -153,16 +153,15 @@ def draw_noise(state: dict[str, Tensor], cfg: EnvConfig, generator: torch.Genera
     the OU draws (physics.ou_noise), then the GE tie-break noise. On CPU in float32 they are drawn
     as one run of ``torch.rand`` numbers by ckernels.uniform (the same numbers, faster), split."""
     ou_pos, ge = state["ou_pos"], state["ge_pos"]
-    k_shape, g_shape = ou_pos.shape[:-1], ge.shape[:-1]
+    shapes = [*ph.ou_noise_shapes(ou_pos.shape[:-1], cfg.ou), ge.shape[:-1]]
     if ou_pos.device.type == "cpu" and ou_pos.dtype == ge.dtype == torch.float32 and generator.device.type == "cpu":
-        shapes = [k_shape, k_shape, k_shape, torch.Size((cfg.ou.heading_tries, *k_shape)), g_shape]
-        u = ckernels.uniform(generator, sum(s.numel() for s in shapes)).split([s.numel() for s in shapes])
-        u = [x.view(s) for x, s in zip(u, shapes)]
-        noise = ph.ou_noise(k_shape, cfg.ou, cfg.motion, generator, uniforms=u[:4])
-        noise["ge_tie"] = u[4]
-        return noise
-    noise = ph.ou_noise(k_shape, cfg.ou, cfg.motion, generator, ou_pos.device, ou_pos.dtype)
-    noise["ge_tie"] = torch.rand(g_shape, generator=generator, device=ge.device, dtype=ge.dtype)
+        run = ckernels.uniform(generator, sum(s.numel() for s in shapes))
+        u = [x.view(s) for x, s in zip(run.split([s.numel() for s in shapes]), shapes)]
+    else:
+        u = [torch.rand(s, generator=generator, device=x.device, dtype=x.dtype)
+             for s, x in zip(shapes, [ou_pos] * 4 + [ge])]
+    noise = ph.ou_noise(shapes[0], cfg.ou, cfg.motion, generator, uniforms=u[:4])
+    noise["ge_tie"] = u[4]
     return noise
 
 
