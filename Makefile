@@ -56,6 +56,11 @@ bench-env-ab: $(STAMP)
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \
 		--out benchmarks/env_ab_2threads.json
 
+# The C random draws and the sampler's C flood, on and off -> benchmarks/ckernels_ab.json
+.PHONY: bench-ckernels
+bench-ckernels: $(STAMP)
+	$(BIN)/python benchmarks/ckernels_ab.py
+
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 

@@ -1,0 +1,83 @@
+"""The CPU env's C kernels outside the compiled graph, on and off, side by side in one process.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ckernels_ab.py [--bursts 10]     (make bench-ckernels)
+
+Two measurements, each alternating bursts with the kernel on and off (process CPU time, one
+thread), reporting each side's median and the median of the per-burst ratios:
+
+- ``uniform``: one slot's random draws at B = 4096 (262,144 float32 numbers), ``ckernels.uniform``
+  (the C replay of torch's mt19937) against ``torch.rand``; checked equal first.
+- ``sample_scenarios``: 256 scenarios (one pool refill), the connectivity check's flood fill in C
+  (``ckernels.flood``) against the torch doubling sweeps; checked equal first.
+
+Writes ``benchmarks/ckernels_ab.json`` with the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _ab(run, switch, bursts: int, calls: int) -> dict:
+    ms = {"c": [], "torch": []}
+    for r in range(bursts):
+        for side in (("c", "torch") if r % 2 == 0 else ("torch", "c")):
+            switch(side == "c")
+            t = time.process_time()
+            for _ in range(calls):
+                run()
+            ms[side].append(1e3 * (time.process_time() - t) / calls)
+    switch(True)
+    ratios = [t / c for t, c in zip(ms["torch"], ms["c"])]
+    return {"calls_per_burst": calls, "median_ms": {k: round(statistics.median(v), 3) for k, v in ms.items()},
+            "speedup_c_over_torch": round(statistics.median(ratios), 3),
+            "speedup_range": [round(min(ratios), 3), round(max(ratios), 3)]}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--bursts", type=int, default=10)
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "ckernels_ab.json"))
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+    from uavlae.envs import ckernels
+    from uavlae.envs.config import EnvConfig
+    from uavlae.envs.scenario import sample_scenarios
+    from uavlae.machine import describe_machine
+
+    if not ckernels.load():
+        raise SystemExit("the C kernels could not be built (see the warning): nothing to compare")
+    state, lib, rows = ckernels._STATE, ckernels._STATE["lib"], {}
+
+    n, g = 262_144, torch.Generator().manual_seed(0)
+    assert torch.equal(ckernels.uniform(torch.Generator().manual_seed(1), n), torch.rand(n, generator=torch.Generator().manual_seed(1)))
+    rows["uniform"] = {"numbers": n, **_ab(lambda: ckernels.uniform(g, n), lambda on: state.update(mt=on), a.bursts, 50)}
+    print(json.dumps(rows["uniform"]), flush=True)
+
+    cfg, b = EnvConfig(), 256
+    fast = sample_scenarios(cfg, b, torch.Generator().manual_seed(2))
+    state["lib"] = None
+    slow = sample_scenarios(cfg, b, torch.Generator().manual_seed(2))
+    state["lib"] = lib
+    assert all(torch.equal(fast[k], slow[k]) for k in fast.keys())
+    rows["sample_scenarios"] = {"scenarios": b, **_ab(lambda: sample_scenarios(cfg, b, g),
+                                                       lambda on: state.update(lib=lib if on else None), a.bursts, 3)}
+    print(json.dumps(rows["sample_scenarios"]), flush=True)
+
+    out = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
+           "command": "python benchmarks/ckernels_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
+           "rows": rows}
+    Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
