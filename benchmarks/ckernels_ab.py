@@ -7,8 +7,11 @@ thread), reporting each side's median and the median of the per-burst ratios:
 
 - ``uniform``: one slot's random draws at B = 4096 (262,144 float32 numbers), ``ckernels.uniform``
   (the C replay of torch's mt19937) against ``torch.rand``; checked equal first.
-- ``sample_scenarios``: 256 scenarios (one pool refill), the connectivity check's flood fill in C
-  (``ckernels.flood``) against the torch doubling sweeps; checked equal first.
+- ``sample_scenarios``: 256 scenarios (one pool refill of a partial reset) and 4096 (a full reset
+  at B = 4096), every kernel of the sampler on (the occupancy grid, ``ckernels.free_grid``; the
+  flood fill, ``ckernels.flood``; the candidate scans, ``ckernels.first_clear``; the draws,
+  ``ckernels.uniform``) against none (the torch code); checked equal first, scenarios and
+  generator state.
 
 Writes ``benchmarks/ckernels_ab.json`` with the machine.
 """
@@ -63,15 +66,23 @@ def main(argv: list[str] | None = None) -> None:
     rows["uniform"] = {"numbers": n, **_ab(lambda: ckernels.uniform(g, n), lambda on: state.update(mt=on), a.bursts, 50)}
     print(json.dumps(rows["uniform"]), flush=True)
 
-    cfg, b = EnvConfig(), 256
-    fast = sample_scenarios(cfg, b, torch.Generator().manual_seed(2))
-    state["lib"] = None
-    slow = sample_scenarios(cfg, b, torch.Generator().manual_seed(2))
-    state["lib"] = lib
-    assert all(torch.equal(fast[k], slow[k]) for k in fast.keys())
-    rows["sample_scenarios"] = {"scenarios": b, **_ab(lambda: sample_scenarios(cfg, b, g),
-                                                       lambda on: state.update(lib=lib if on else None), a.bursts, 3)}
-    print(json.dumps(rows["sample_scenarios"]), flush=True)
+    cfg, mt = EnvConfig(), state["mt"]
+
+    def kernels(on: bool) -> None:
+        state.update(lib=lib if on else None, mt=mt if on else False)
+
+    for b, calls, bursts in ((256, 3, a.bursts), (4096, 1, max(2, a.bursts // 2))):
+        sides = {}
+        for on in (True, False):
+            kernels(on)
+            h = torch.Generator().manual_seed(2)
+            sides[on] = (sample_scenarios(cfg, b, h), h.get_state())
+        kernels(True)
+        assert all(torch.equal(sides[True][0][k], sides[False][0][k]) for k in sides[True][0].keys())
+        assert torch.equal(sides[True][1], sides[False][1])
+        name = "sample_scenarios" if b == 256 else f"sample_scenarios_{b}"
+        rows[name] = {"scenarios": b, **_ab(lambda b=b: sample_scenarios(cfg, b, g), kernels, bursts, calls)}
+        print(json.dumps(rows[name]), flush=True)
 
     out = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
            "command": "python benchmarks/ckernels_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),

@@ -260,3 +260,88 @@ def test_connectivity_check_gives_the_torch_flood_s_answer(monkeypatch):
     monkeypatch.setitem(ckernels._STATE, "lib", None)
     slow = sc.check_connectivity(CFG, td)
     assert 0.1 < fast.float().mean() < 0.9 and torch.equal(fast, slow)
+
+
+def _blocked_cells(free):
+    """(row, column) of the cells blocked for scenario 0 of a packed free grid."""
+    return {(int(j), int(i)) for j, i in ((free[0] & 1) == 0).nonzero().tolist()}
+
+
+def test_free_grid_inflates_a_building_by_hand():
+    # 5 m cells (centres 2.5, 7.5, ...), building [10, 20] x [10, 20], d_min = 9 m, so 2 rows above
+    # and below. Level rows 1..4 (centres 7.5..22.5): columns with dx < 9, centres 2.5..27.5 (dx 7.5),
+    # i = 0..5. Rows 0 and 5 (dy = 7.5): dx^2 < 81 - 56.25 = 24.75, so dx = 2.5 only, i = 1..4.
+    from uavlae.envs import scenario as sc
+
+    cfg = EnvConfig.model_validate({"safety": {"d_min": 9.0}})
+    grid = sc._Grid.of(cfg)
+    cx, cy = grid.centres(torch.device("cpu"))
+    rects = torch.tensor([[[10.0, 10.0, 20.0, 20.0], [300.0, 300.0, 400.0, 400.0]]])
+    rmask = torch.tensor([[True, False]])  # the second building is absent
+    cells = torch.tensor([[0, 3 * grid.nx + 3]])  # the seed (cell 0) and a target inside the building
+    free, seed = ckernels.free_grid(rects, rmask, cx, cy, 9.0, 2, cells, torch.tensor([[True, True]]))
+    want = {(j, i) for j in range(1, 5) for i in range(6)} | {(j, i) for j in (0, 5) for i in range(1, 5)}
+    assert _blocked_cells(free) == want - {(3, 3)}  # the target's cell is set free
+    assert (seed[0] & 1).nonzero().tolist() == [[0, 0]]
+    assert torch.equal(free, ~sc._blocked(cfg, grid, rects, rmask) | sc._point_bits(grid, 1, torch.zeros(1, dtype=torch.long), cells[:, 1], torch.tensor([True])))
+
+
+@pytest.mark.parametrize("d_min,cell", [(5.0, 5.0), (7.3, 3.3), (0.1, 2.5), (12.5, 4.9)])
+def test_free_grid_gives_the_torch_grids(d_min, cell):
+    from uavlae.envs import scenario as sc
+
+    cfg = EnvConfig.model_validate({"safety": {"d_min": d_min, "d_safe": max(15.0, d_min)}, "sampling": {"grid_cell": cell}})
+    grid = sc._Grid.of(cfg)
+    cx, cy = grid.centres(torch.device("cpu"))
+    g = torch.Generator().manual_seed(1)
+    for n in (1, 64, 130):  # one word, a full word, a partial third word
+        u = torch.rand(n, 6, 4, generator=g) * 500
+        u[: n // 2] = (u[: n // 2] / 2.5).round() * 2.5  # edges on cell centres and cell borders
+        lo, hi = torch.minimum(u[..., :2], u[..., 2:]), torch.maximum(u[..., :2], u[..., 2:])
+        rects, rmask = torch.cat([lo, hi], -1), torch.rand(n, 6, generator=g) < 0.7
+        cells = torch.randint(0, grid.nx * grid.ny, (n, 4), generator=g)
+        cmask = torch.rand(n, 4, generator=g) < 0.8
+        cmask[:, 0] = True
+        free, seed = ckernels.free_grid(rects, rmask, cx, cy, d_min, math.ceil(d_min / grid.cell_y), cells, cmask)
+        b, nb = torch.arange(n), free.shape[0]
+        want_seed = sc._point_bits(grid, nb, b, cells[:, 0], cmask[:, 0])
+        want = ~sc._blocked(cfg, grid, rects, rmask)
+        for t in range(4):
+            want |= sc._point_bits(grid, nb, b, cells[:, t], cmask[:, t])
+        assert torch.equal(free, want) and torch.equal(seed, want_seed)
+
+
+def test_first_clear_by_hand():
+    # one building [10, 20] x [10, 20]; margin 5: (24, 15) is 4 m away, (26, 15) 6 m, (0, 0) far
+    rects, rmask = torch.tensor([[[10.0, 10.0, 20.0, 20.0]]]), torch.tensor([[True]])
+    pts = torch.tensor([[[24.0, 15.0], [26.0, 15.0], [0.0, 0.0]],
+                        [[15.0, 15.0], [24.0, 15.0], [12.0, 19.0]],
+                        [[24.0, 15.0], [26.0, 15.0], [0.0, 0.0]]])
+    pre = torch.tensor([[True, True, True], [True, True, True], [True, False, True]])
+    row = torch.zeros(3, dtype=torch.long)
+    assert ckernels.first_clear(pts, pre, row, rects, rmask, 5.0).tolist() == [1, -1, 2]
+    # margin 0: only points outside the closed rectangle; (20, 15) lies on its edge
+    edge = torch.tensor([[[20.0, 15.0], [20.5, 15.0]]])
+    assert ckernels.first_clear(edge, torch.ones(1, 2, dtype=torch.bool), row[:1], rects, rmask, 0.0).tolist() == [1]
+    # rectangles: open interiors; touching the edge x = 20 is not an overlap
+    cand = torch.tensor([[[15.0, 0.0, 25.0, 12.0], [20.0, 0.0, 30.0, 30.0], [0.0, 0.0, 5.0, 5.0]]])
+    assert ckernels.first_clear(cand, torch.ones(1, 3, dtype=torch.bool), row[:1], rects, rmask).tolist() == [1]
+    assert ckernels.first_clear(cand, torch.ones(1, 3, dtype=torch.bool), row[:1], rects, ~rmask).tolist() == [0]
+    with pytest.raises(ValueError, match="row must index"):
+        ckernels.first_clear(pts, pre, row + 1, rects, rmask, 5.0)
+
+
+def test_sampler_with_the_kernels_draws_the_torch_scenarios(monkeypatch):
+    # the C grid, scans and draws in the sampler: the same scenarios and the same generator state
+    from uavlae.envs import scenario as sc
+
+    cfg = EnvConfig.model_validate({"zones": {"n_bz": {"min": 2, "max": 4}}, "safety": {"d_min": 7.3}})
+    g = torch.Generator().manual_seed(3)
+    fast = sc.sample_scenarios(cfg, 300, g)
+    fast_state = g.get_state()
+    monkeypatch.setitem(ckernels._STATE, "lib", None)
+    monkeypatch.setitem(ckernels._STATE, "mt", False)
+    g = torch.Generator().manual_seed(3)
+    slow = sc.sample_scenarios(cfg, 300, g)
+    assert all(torch.equal(fast[k], slow[k]) for k in sc.SCENARIO_KEYS)
+    assert torch.equal(fast_state, g.get_state())

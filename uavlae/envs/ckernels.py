@@ -1,7 +1,9 @@
 """C kernels for the CPU step: the OU step and the GE service of the compiled step
-(``UAVEnv(compile_step=True)``), the random draws of every CPU step, and the flood fill of the
-scenario sampler's connectivity check (:func:`flood`: the same component; sampling x1.3 and
-the draws x6, ``benchmarks/ckernels_ab.json``).
+(``UAVEnv(compile_step=True)``), the random draws of every CPU step, and three parts of the
+scenario sampler: the connectivity check's occupancy grid (:func:`free_grid`) and flood fill
+(:func:`flood`), and the scan for each slot's first valid candidate (:func:`first_clear`).
+They give the same numbers as the torch code they replace (the draws x6, ``sample_scenarios``
+with all of them about x2-4; ``benchmarks/ckernels_ab.json``).
 
 Inductor's C++ for the step runs scalar loops over the tiny entity dimensions (7 OUs x 6
 blocked rectangles x 2 coordinates); the OU move check and its heading retries were the
@@ -43,7 +45,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["applies", "flood", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
+__all__ = ["applies", "first_clear", "flood", "free_grid", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
 
 SOURCE = r"""
 #include <math.h>
@@ -197,6 +199,108 @@ void uavlae_flood(int64_t nb, int64_t ny, int64_t nx, int nth, const int64_t *fr
     }
 }
 
+/* scenario._connected's grids: `free` [nb, ny, nx] words (bit s of a word: scenario 64 w + s)
+   holds the cells whose centre is neither inside nor within d of a present rectangle
+   (scenario._blocked's rule: the rows level with a rectangle, columns within d or inside; the
+   kmax rows above and below it, columns with dx^2 < d^2 - dy^2), then the cells of each
+   scenario's np points (flat index, where present) set free; `seed` gets the bit of each
+   scenario's first point. Padding scenarios (64 nb > n) are free everywhere, as _pack pads. */
+void uavlae_free_grid(int64_t n, int64_t nr, int64_t ny, int64_t nx, int64_t kmax, int nth,
+                      const float *rects, const bool *rmask, const float *cx, const float *cy,
+                      float d, float d2, int64_t np, const int64_t *cells, const bool *cmask,
+                      int64_t *free_, int64_t *seed_) {
+    const int64_t nb = (n + 63) / 64, plane = ny * nx;
+    ROWS_PARALLEL
+    for (int64_t w = 0; w < nb; w++) {
+        uint64_t *g = (uint64_t *)free_ + w * plane, *sd = (uint64_t *)seed_ + w * plane;
+        float dx[nx > 0 ? nx : 1], dy[ny > 0 ? ny : 1];
+        memset(g, 0, (size_t)plane * 8);
+        memset(sd, 0, (size_t)plane * 8);
+        for (int64_t s = 0; s < 64 && 64 * w + s < n; s++) {
+            const int64_t b = 64 * w + s;
+            const uint64_t bit = (uint64_t)1 << s;
+            for (int64_t r = 0; r < nr; r++) {
+                if (!rmask[b * nr + r]) continue;
+                const float *q = rects + 4 * (b * nr + r);
+                int64_t lo = nx, hi = -1, above = 0, below = -1;
+                for (int64_t i = 0; i < nx; i++) {
+                    float v = hi_(q[0] - cx[i], cx[i] - q[2]);
+                    dx[i] = v > 0.0f ? v : 0.0f;
+                    if (dx[i] < d || dx[i] == 0.0f) { if (lo == nx) lo = i; hi = i; }
+                }
+                for (int64_t j = 0; j < ny; j++) {
+                    float v = hi_(q[1] - cy[j], cy[j] - q[3]);
+                    dy[j] = v > 0.0f ? v : 0.0f;
+                    above += cy[j] <= q[3];  /* searchsorted(cy, y1, right=True) */
+                    below += cy[j] < q[1];   /* searchsorted(cy, y0) - 1 */
+                }
+                for (int64_t j = 0; j < ny; j++) {
+                    if (dy[j] != 0.0f) continue;
+                    uint64_t *row = g + j * nx;
+                    for (int64_t i = lo; i <= hi; i++)
+                        if (dx[i] < d || dx[i] == 0.0f) row[i] |= bit;
+                }
+                for (int64_t k = 0; k < kmax; k++) {
+                    for (int e = 0; e < 2; e++) {
+                        int64_t j = e ? below - k : above + k;
+                        if (j < 0 || j >= ny) continue;
+                        float dyk = dy[j], e2 = d2 - dyk * dyk;
+                        if (!(dyk > 0.0f && e2 > 0.0f)) continue;
+                        uint64_t *row = g + j * nx;
+                        for (int64_t i = 0; i < nx; i++)
+                            if (dx[i] * dx[i] < e2) row[i] |= bit;
+                    }
+                }
+            }
+        }
+        for (int64_t c = 0; c < plane; c++) g[c] = ~g[c];
+        for (int64_t s = 0; s < 64 && 64 * w + s < n; s++) {
+            const int64_t b = 64 * w + s;
+            const uint64_t bit = (uint64_t)1 << s;
+            for (int64_t t = 0; t < np; t++) {
+                if (!cmask[b * np + t]) continue;
+                g[cells[b * np + t]] |= bit;
+                if (t == 0) sd[cells[b * np]] |= bit;
+            }
+        }
+    }
+}
+
+/* scenario._first_valid's scan, for m rows of k candidates: the index of the first candidate
+   that `pre` [m, k] admits and that keeps clear of every present rectangle of its row's table
+   (rects[row[i]], [nz, 4], rmask[row[i]]); -1 when none does. Points [m, k, 2] keep clear as in
+   scenario._clear_of: squared distance dx^2 + dy^2 >= margin2 (> 0 when `strict`).
+   Rectangles [m, k, 4] as in scenario._rects_overlap: open interiors that do not meet. */
+void uavlae_first_clear(int64_t m, int64_t k, int64_t nz, int nth, int rect, const float *cand,
+                        const bool *pre, const int64_t *row, const float *rects, const bool *rmask,
+                        float margin2, int strict, int64_t *first) {
+    const int64_t w = rect ? 4 : 2;
+    ROWS_PARALLEL
+    for (int64_t i = 0; i < m; i++) {
+        const float *r = rects + 4 * nz * row[i];
+        const bool *rm = rmask + nz * row[i];
+        first[i] = -1;
+        for (int64_t j = 0; j < k; j++) {
+            if (!pre[i * k + j]) continue;
+            const float *c = cand + w * (i * k + j);
+            bool ok = true;
+            for (int64_t z = 0; z < nz && ok; z++) {
+                if (!rm[z]) continue;
+                const float *q = r + 4 * z;
+                if (rect) {
+                    ok = !(c[0] < q[2] && q[0] < c[2] && c[1] < q[3] && q[1] < c[3]);
+                } else {
+                    float dx = hi_(q[0] - c[0], c[0] - q[2]), dy = hi_(q[1] - c[1], c[1] - q[3]);
+                    dx = dx > 0.0f ? dx : 0.0f; dy = dy > 0.0f ? dy : 0.0f;
+                    float d2 = dx * dx + dy * dy;
+                    ok = strict ? d2 > 0.0f : d2 >= margin2;
+                }
+            }
+            if (ok) { first[i] = j; break; }
+        }
+    }
+}
+
 /* torch.rand(n, generator=g) for a CPU generator, replayed: ATen's mt19937 (the engine behind
    torch.Generator on CPU) and its float32 uniform, (y & (2^24 - 1)) * 2^-24. `st` is the
    generator's get_state() bytes: seed (int64), left (int32), seeded (int32), next (uint64),
@@ -297,8 +401,8 @@ def _build(cc: str) -> Path:
 
 
 def load() -> bool:
-    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu`, :data:`serve_cpu` and
-    :func:`flood` can run (:func:`uniform` also needs its check against ``torch.rand`` to pass).
+    """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu`, :data:`serve_cpu`,
+    :func:`flood`, :func:`free_grid` and :func:`first_clear` can run (:func:`uniform` also needs its check against ``torch.rand`` to pass).
     Never raises: a missing compiler or a failed build warns and returns ``False``."""
     global LOADED, _TRIED
     if _TRIED:
@@ -325,6 +429,10 @@ def load() -> bool:
     lib.uavlae_serve.restype = None
     lib.uavlae_flood.argtypes = [i64, i64, i64, ctypes.c_int, p, p]
     lib.uavlae_flood.restype = None
+    lib.uavlae_free_grid.argtypes = [i64, i64, i64, i64, i64, ctypes.c_int, *([p] * 4), f32, f32, i64, p, p, p, p]
+    lib.uavlae_free_grid.restype = None
+    lib.uavlae_first_clear.argtypes = [i64, i64, i64, ctypes.c_int, ctypes.c_int, *([p] * 5), f32, ctypes.c_int, p]
+    lib.uavlae_first_clear.restype = None
     lib.uavlae_mt_uniform.argtypes = [p, p, i64]
     lib.uavlae_mt_uniform.restype = ctypes.c_int
     _STATE["lib"], LOADED = lib, True
@@ -370,7 +478,7 @@ def uniform(generator: torch.Generator, n: int) -> Tensor:
     """``torch.rand(n, generator=generator)``: the same float32 numbers, and the generator left in
     the same state, drawn several times faster by the C replay of ATen's mt19937 when
     :func:`load` succeeded and checked it (``generator`` on CPU); else torch.rand itself."""
-    if _STATE["mt"] and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
+    if _STATE["mt"] and _STATE["lib"] is not None and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
         out = _mt_uniform(generator, n)
         if out is not None:
             return out
@@ -397,6 +505,63 @@ def flood(free: Tensor, seed: Tensor) -> Tensor | None:
     free, reached = free.contiguous(), seed.clone(memory_format=torch.contiguous_format)
     lib.uavlae_flood(*free.shape, _threads(free.shape[0], 1), free.data_ptr(), reached.data_ptr())
     return reached
+
+
+def free_grid(rects: Tensor, rmask: Tensor, cx: Tensor, cy: Tensor, d: float, kmax: int, cells: Tensor,
+              cmask: Tensor) -> tuple[Tensor, Tensor] | None:
+    """``scenario._connected``'s packed grids, ``(free, seed)`` int64 ``[ceil(n / 64), ny, nx]``:
+    free is ``~scenario._blocked(rects [n, R, 4], rmask [n, R])`` (cell centres ``cx`` [nx],
+    ``cy`` [ny], inflation ``d``, ``kmax`` rows above and below) with the cells ``cells``
+    [n, P] (flat index ``j * nx + i``, where ``cmask`` [n, P]) set free, and seed holds the cell
+    of each scenario's first point. The same bits as the torch code; ``None`` (use it) unless the
+    kernels are loaded and every tensor is on the CPU with the expected dtype."""
+    lib = _STATE["lib"]
+    n, nr = rmask.shape
+    want = ((rects, torch.float32, 3), (rmask, torch.bool, 2), (cx, torch.float32, 1), (cy, torch.float32, 1),
+            (cells, torch.int64, 2), (cmask, torch.bool, 2))
+    if lib is None or any(t.device.type != "cpu" or t.dtype != dt or t.dim() != dim for t, dt, dim in want):
+        return None
+    ny, nx, np_ = cy.shape[0], cx.shape[0], cells.shape[1]
+    if rects.shape != (n, nr, 4) or cells.shape[0] != n or cmask.shape != cells.shape or n == 0 or np_ == 0:
+        return None
+    if bool(((cells < 0) | (cells >= ny * nx)).any()):
+        raise ValueError(f"free_grid: cells must index the {ny} x {nx} grid")
+    c = [t.contiguous() for t in (rects, rmask, cx, cy, cells, cmask)]
+    nb = -(-n // 64)
+    free, seed = torch.empty(nb, ny, nx, dtype=torch.int64), torch.empty(nb, ny, nx, dtype=torch.int64)
+    lib.uavlae_free_grid(n, nr, ny, nx, kmax, _threads(nb, 1), *(t.data_ptr() for t in c[:4]), d, d * d,
+                         np_, c[4].data_ptr(), c[5].data_ptr(), free.data_ptr(), seed.data_ptr())
+    return free, seed
+
+
+def first_clear(cand: Tensor, pre: Tensor, row: Tensor, rects: Tensor, rmask: Tensor,
+                margin: float | None = None) -> Tensor | None:
+    """``scenario._first_valid``'s scan: for each of the m rows of ``cand`` (points [m, k, 2] or,
+    with ``margin=None``, rectangles [m, k, 4]), the index of the first candidate that ``pre``
+    [m, k] admits and that keeps clear of every present rectangle of ``rects[row]`` ([n, Z, 4],
+    ``rmask`` [n, Z]): a point by ``margin`` (``scenario._clear_of``), a rectangle by not
+    overlapping (``scenario._rects_overlap``); -1 when none does. int64 [m]; ``None`` (use the
+    torch code) unless the kernels are loaded and the tensors are CPU float32/bool/int64."""
+    lib = _STATE["lib"]
+    want = ((cand, torch.float32, 3), (pre, torch.bool, 2), (row, torch.int64, 1), (rects, torch.float32, 3),
+            (rmask, torch.bool, 2))
+    if lib is None or any(t.device.type != "cpu" or t.dtype != dt or t.dim() != dim for t, dt, dim in want):
+        return None
+    m, k, w = cand.shape
+    n, nz = rmask.shape
+    if w != (2 if margin is not None else 4) or pre.shape != (m, k) or row.shape != (m,) or rects.shape != (n, nz, 4):
+        raise ValueError(f"first_clear: shapes cand {tuple(cand.shape)}, pre {tuple(pre.shape)}, row "
+                         f"{tuple(row.shape)}, rects {tuple(rects.shape)}, rmask {tuple(rmask.shape)} do not fit")
+    if m and bool(((row < 0) | (row >= n)).any()):
+        raise ValueError(f"first_clear: row must index the {n} tables")
+    first = torch.empty(m, dtype=torch.int64)
+    if m == 0:
+        return first
+    c = [t.contiguous() for t in (cand, pre, row, rects, rmask)]
+    margin2, strict = (0.0, 0) if margin is None else (margin * margin, int(margin <= 0))
+    lib.uavlae_first_clear(m, k, nz, _threads(m), int(margin is None), *(t.data_ptr() for t in c), margin2, strict,
+                           first.data_ptr())
+    return first
 
 
 _F32 = {"pos": 3, "vel": 3, "blocked": 3, "speed": 2, "heading_cos": 2, "heading_sin": 2, "retry_heading": 3}

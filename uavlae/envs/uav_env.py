@@ -77,7 +77,8 @@ class UAVEnv(EnvBase):
             inside the graph as small C kernels (:mod:`uavlae.envs.ckernels`, built once with
             the C compiler, split over OpenMP threads). Every CPU env, compiled or not, also
             draws its random numbers through the C replay of torch's generator (the same
-            numbers) and floods the sampler's connectivity grid in C. Events, flags
+            numbers) and runs the scenario sampler's occupancy grid, flood fill and
+            candidate scans in C (the same scenarios). Events, flags
             and integer state equal the eager ones exactly; floats may differ in the last bit
             (Inductor's fused float32 math, ``cosf``/``log2f``).
             Not TorchRL's own ``compile=`` keyword: EnvBase's metaclass takes that one and
@@ -109,7 +110,7 @@ class UAVEnv(EnvBase):
         self.compiled = bool(compile_step)
         if self.device.type == "cpu":
             # the C kernels (built once; without them torch's code, with a warning): the random
-            # draws and the sampler's connectivity flood of every CPU env, the OU step and the GE
+            # draws and the scenario sampler's grid, flood and scans of every CPU env, the OU step and the GE
             # service of the compiled step
             ckernels.load()
         self._core = self._make_core(self.compiled)
