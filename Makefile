@@ -50,13 +50,19 @@ bench-env: $(STAMP)
 
 # This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
 .PHONY: bench-env-ab
-AB_BASE ?= 43fd6e0
+AB_BASE ?= 51098f4
 bench-env-ab: $(STAMP)
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \
 		--out benchmarks/env_ab_2threads.json
 
-# The C random draws and the sampler's C flood, on and off -> benchmarks/ckernels_ab.json
+# Where a compiled B = 4096 call goes, on 1 and 2 threads, and the call without its physics
+# -> benchmarks/env_breakdown.json
+.PHONY: bench-env-breakdown
+bench-env-breakdown: $(STAMP)
+	$(BIN)/python benchmarks/env_breakdown.py
+
+# The C random draws and the sampler's C kernels, on and off -> benchmarks/ckernels_ab.json
 .PHONY: bench-ckernels
 bench-ckernels: $(STAMP)
 	$(BIN)/python benchmarks/ckernels_ab.py
