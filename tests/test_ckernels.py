@@ -283,14 +283,16 @@ def test_free_grid_inflates_a_building_by_hand():
     want = {(j, i) for j in range(1, 5) for i in range(6)} | {(j, i) for j in (0, 5) for i in range(1, 5)}
     assert _blocked_cells(free) == want - {(3, 3)}  # the target's cell is set free
     assert (seed[0] & 1).nonzero().tolist() == [[0, 0]]
-    assert torch.equal(free, ~sc._blocked(cfg, grid, rects, rmask) | sc._point_bits(grid, 1, torch.zeros(1, dtype=torch.long), cells[:, 1], torch.tensor([True])))
+    target = sc._point_bits(grid, 1, torch.zeros(1, dtype=torch.long), cells[:, 1], torch.tensor([True]))
+    assert torch.equal(free, ~sc._blocked(cfg, grid, rects, rmask) | target)  # the torch grid, bit for bit
 
 
 @pytest.mark.parametrize("d_min,cell", [(5.0, 5.0), (7.3, 3.3), (0.1, 2.5), (12.5, 4.9)])
 def test_free_grid_gives_the_torch_grids(d_min, cell):
     from uavlae.envs import scenario as sc
 
-    cfg = EnvConfig.model_validate({"safety": {"d_min": d_min, "d_safe": max(15.0, d_min)}, "sampling": {"grid_cell": cell}})
+    cfg = EnvConfig.model_validate({"safety": {"d_min": d_min, "d_safe": max(15.0, d_min)},
+                                    "sampling": {"grid_cell": cell}})
     grid = sc._Grid.of(cfg)
     cx, cy = grid.centres(torch.device("cpu"))
     g = torch.Generator().manual_seed(1)

@@ -402,7 +402,8 @@ def _build(cc: str) -> Path:
 
 def load() -> bool:
     """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu`, :data:`serve_cpu`,
-    :func:`flood`, :func:`free_grid` and :func:`first_clear` can run (:func:`uniform` also needs its check against ``torch.rand`` to pass).
+    :func:`flood`, :func:`free_grid` and :func:`first_clear` can run (:func:`uniform` also needs
+    its check against ``torch.rand`` to pass).
     Never raises: a missing compiler or a failed build warns and returns ``False``."""
     global LOADED, _TRIED
     if _TRIED:

@@ -333,9 +333,9 @@ def _first_valid(
 
     draw(m, k) -> [m, k, width] candidates for m rows; valid(rows, cand) -> bool [m, k], or
     int64 [m]: the index of each row's first valid candidate, -1 for none (the C scan,
-    ``ckernels.first_clear``). A first batch of ``_FIRST_TRIES`` candidates goes to every row; rows still empty draw
-    their remaining tries at once. Returns (values [n, width], found bool [n]).
-    """
+    ``ckernels.first_clear``). A first batch of ``_FIRST_TRIES`` candidates goes to every row;
+    rows still empty draw their remaining tries at once. Returns (values [n, width], found
+    bool [n])."""
     out = torch.zeros(n, width, dtype=_DTYPE, device=device)
     found = torch.zeros(n, dtype=torch.bool, device=device)
     rows = torch.arange(n, device=device)
