@@ -2,11 +2,14 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ckernels_ab.py [--bursts 10]     (make bench-ckernels)
 
-Two measurements, each alternating bursts with the kernel on and off (process CPU time, one
+Each measurement alternates bursts with the kernel on and off (process CPU time, one
 thread), reporting each side's median and the median of the per-burst ratios:
 
 - ``uniform``: one slot's random draws at B = 4096 (262,144 float32 numbers), ``ckernels.uniform``
   (the C replay of torch's mt19937) against ``torch.rand``; checked equal first.
+- ``draw_noise``: one slot's random draws at B = 4096 as the step takes them (the OU turns,
+  speeds, headings and retries, the GE ties), drawn and transformed in one C pass
+  (``ckernels.uniform_runs``) against ``torch.rand`` and torch's ops; checked equal first.
 - ``sample_scenarios``: 256 scenarios (one pool refill of a partial reset) and 4096 (a full reset
   at B = 4096), every kernel of the sampler on (the occupancy grid, ``ckernels.free_grid``; the
   flood fill, ``ckernels.flood``; the candidate scans, ``ckernels.first_clear``; the draws,
@@ -67,6 +70,22 @@ def main(argv: list[str] | None = None) -> None:
     print(json.dumps(rows["uniform"]), flush=True)
 
     cfg, mt = EnvConfig(), state["mt"]
+
+    # one slot's noise at B = 4096 (world.draw_noise): the runs drawn and transformed in one C pass
+    # (ckernels.uniform_runs) against torch.rand and torch's ops
+    from uavlae.envs import UAVEnv
+    from uavlae.envs.world import draw_noise
+
+    env = UAVEnv(batch_size=[4096], seed=0)
+    st = {k: v for k, v in env.reset()["state"].items()}
+    on = draw_noise(st, cfg, torch.Generator().manual_seed(3))
+    state["mt"] = False
+    off = draw_noise(st, cfg, torch.Generator().manual_seed(3))
+    state["mt"] = mt
+    assert all(torch.equal(on[k], off[k]) for k in on)
+    rows["draw_noise"] = {"batch": 4096, **_ab(lambda: draw_noise(st, cfg, g), lambda on: state.update(mt=mt if on else False),
+                                                a.bursts, 50)}
+    print(json.dumps(rows["draw_noise"]), flush=True)
 
     def kernels(on: bool) -> None:
         state.update(lib=lib if on else None, mt=mt if on else False)

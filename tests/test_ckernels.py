@@ -214,6 +214,29 @@ def test_the_mt19937_replay_refuses_a_state_it_does_not_know_and_falls_back(monk
     assert torch.equal(ckernels.uniform(g, 5000), torch.rand(5000, generator=h))  # torch.rand itself
 
 
+def test_uniform_runs_transform_the_stream_by_hand_and_as_torch_does():
+    # seed 5489: the first output gives u0 = 9550684 / 2^24 = 0.56926..., the 10000th
+    # 13242075 / 2^24 (the C++ standard's value, see above)
+    runs = [(torch.Size([1]), "<", 0.57), (torch.Size([9998]), "*", 1.0), (torch.Size([1]), "*", 2.0)]
+    g = torch.Generator().manual_seed(5489)
+    first, middle, last = ckernels.uniform_runs(g, runs)
+    assert first.dtype == torch.bool and first.tolist() == [True]  # 0.56926 < 0.57
+    assert last.item() == 2 * 13242075 / 2**24  # a power-of-two scale: exact
+    h = torch.Generator().manual_seed(5489)
+    assert not ckernels.uniform_runs(h, [(torch.Size([1]), "<", 0.569), *runs[1:]])[0].item()  # 0.56926 >= 0.569
+    # against torch.rand and torch's ops, from a used generator, with the generator left as torch leaves it
+    g, h = torch.Generator().manual_seed(8), torch.Generator().manual_seed(8)
+    torch.rand(100, generator=g), torch.rand(100, generator=h)
+    runs = [(torch.Size([300, 7]), "<", 0.05), (torch.Size([300, 7]), "*", 10.0), (torch.Size([4, 300, 7]), "*", 6.283185307179586)]
+    got = ckernels.uniform_runs(g, runs)
+    want = [torch.rand(s, generator=h) < p if op == "<" else torch.rand(s, generator=h) * p for s, op, p in runs]
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    assert torch.equal(g.get_state(), h.get_state())
+    assert ckernels.uniform_runs(g, [(torch.Size([100]), "*", 1.0)]) is None  # too few numbers: torch.rand
+    with pytest.raises(ValueError, match="op must be"):
+        ckernels.uniform_runs(g, [(torch.Size([4096]), "+", 1.0)])
+
+
 def test_draw_noise_draws_the_same_numbers_through_the_replay(monkeypatch):
     from uavlae.envs import UAVEnv
     from uavlae.envs.world import draw_noise

@@ -17,7 +17,8 @@ velocities may differ in the last bit (``cosf``/``sinf``/``sqrtf`` against ATen'
 :func:`uniform` is ``torch.rand(n, generator=g)`` for a CPU generator, bit for bit, with the
 generator left in the state torch would leave it in: a replay of ATen's mt19937 on the
 generator's ``get_state()`` bytes, whose twist and tempering vectorise (ATen draws one number at
-a time). :func:`load` checks it against ``torch.rand`` and leaves it off, with a warning, if
+a time); :func:`uniform_runs` writes several such runs already transformed (``u * p``,
+``u < p``), as ``world.draw_noise`` needs them. :func:`load` checks it against ``torch.rand`` and leaves it off, with a warning, if
 they differ (a torch whose generator is laid out differently).
 
 The torch functions in :mod:`uavlae.envs.physics` stay the reference: the eager env always
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -45,7 +47,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["applies", "first_clear", "flood", "free_grid", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
+__all__ = ["applies", "first_clear", "flood", "free_grid", "uniform_runs", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
 
 SOURCE = r"""
 #include <math.h>
@@ -314,33 +316,77 @@ static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
     return (((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u);
 }
 
-int uavlae_mt_uniform(unsigned char *st, float *out, int64_t n) {
-    int32_t left, seeded;
-    uint64_t next;
-    uint32_t s[MT_N];
-    memcpy(&left, st + 8, 4); memcpy(&seeded, st + 12, 4); memcpy(&next, st + 16, 8);
-    if (!seeded || left < 1 || left > MT_N || next > MT_N) return 1;
+static int mt_load(const unsigned char *st, uint32_t *s, int32_t *left, uint64_t *next) {
+    int32_t seeded;
+    memcpy(left, st + 8, 4); memcpy(&seeded, st + 12, 4); memcpy(next, st + 16, 8);
+    if (!seeded || *left < 1 || *left > MT_N || *next > MT_N) return 1;
     for (int i = 0; i < MT_N; i++) { uint64_t w; memcpy(&w, st + 24 + 8 * i, 8); s[i] = (uint32_t)w; }
+    return 0;
+}
+
+static void mt_store(unsigned char *st, const uint32_t *s, int32_t left, uint64_t next) {
+    memcpy(st + 8, &left, 4); memcpy(st + 16, &next, 8);
+    for (int i = 0; i < MT_N; i++) { uint64_t w = s[i]; memcpy(st + 24 + 8 * i, &w, 8); }
+}
+
+/* the next n numbers of the stream into out */
+static void mt_fill(uint32_t *s, int32_t *left, uint64_t *next, float *out, int64_t n) {
     for (int64_t done = 0; done < n;) {
-        if (left == 1) {  /* ATen's next_state(); then left = 625 - next as after each draw */
+        if (*left == 1) {  /* ATen's next_state(); then left = 625 - next as after each draw */
             int i = 0;
             for (; i < MT_N - MT_M; i++) s[i] = s[i + MT_M] ^ mt_twist(s[i], s[i + 1]);
             for (; i < MT_N - 1; i++) s[i] = s[i + MT_M - MT_N] ^ mt_twist(s[i], s[i + 1]);
             s[MT_N - 1] = s[MT_M - 1] ^ mt_twist(s[MT_N - 1], s[0]);
-            left = MT_N + 1; next = 0;
+            *left = MT_N + 1; *next = 0;
         }
-        int64_t take = left - 1 < n - done ? left - 1 : n - done;
-        const uint32_t *src = s + next;
+        int64_t take = *left - 1 < n - done ? *left - 1 : n - done;
+        const uint32_t *src = s + *next;
         float *dst = out + done;
         for (int64_t j = 0; j < take; j++) {
             uint32_t y = src[j];
             y ^= y >> 11; y ^= (y << 7) & 0x9d2c5680u; y ^= (y << 15) & 0xefc60000u; y ^= y >> 18;
             dst[j] = (float)(y & 0xffffffu) * (1.0f / 16777216.0f);
         }
-        done += take; next += (uint64_t)take; left -= (int32_t)take;
+        done += take; *next += (uint64_t)take; *left -= (int32_t)take;
     }
-    memcpy(st + 8, &left, 4); memcpy(st + 16, &next, 8);
-    for (int i = 0; i < MT_N; i++) { uint64_t w = s[i]; memcpy(st + 24 + 8 * i, &w, 8); }
+}
+
+int uavlae_mt_uniform(unsigned char *st, float *out, int64_t n) {
+    uint32_t s[MT_N];
+    int32_t left;
+    uint64_t next;
+    if (mt_load(st, s, &left, &next)) return 1;
+    mt_fill(s, &left, &next, out, n);
+    mt_store(st, s, left, next);
+    return 0;
+}
+
+/* nr consecutive runs of torch.rand numbers, each written as torch would transform it: run r
+   is count[r] numbers u, out[r][i] = u * param[r] (float32; param 1: u itself) or, where
+   less[r], the bool u < param[r]. The same state contract as uavlae_mt_uniform. */
+int uavlae_mt_runs(unsigned char *st, int64_t nr, const int64_t *count, const int *less,
+                   const float *param, void **out) {
+    uint32_t s[MT_N];
+    int32_t left;
+    uint64_t next;
+    if (mt_load(st, s, &left, &next)) return 1;
+    for (int64_t r = 0; r < nr; r++) {
+        const float p = param[r];
+        if (less[r]) {
+            bool *o = (bool *)out[r];
+            float buf[1024];
+            for (int64_t i = 0; i < count[r]; i += 1024) {
+                int64_t c = count[r] - i < 1024 ? count[r] - i : 1024;
+                mt_fill(s, &left, &next, buf, c);
+                for (int64_t j = 0; j < c; j++) o[i + j] = buf[j] < p;
+            }
+        } else {
+            float *o = (float *)out[r];
+            mt_fill(s, &left, &next, o, count[r]);
+            if (p != 1.0f) for (int64_t j = 0; j < count[r]; j++) o[j] = o[j] * p;
+        }
+    }
+    mt_store(st, s, left, next);
     return 0;
 }
 """
@@ -436,6 +482,8 @@ def load() -> bool:
     lib.uavlae_first_clear.restype = None
     lib.uavlae_mt_uniform.argtypes = [p, p, i64]
     lib.uavlae_mt_uniform.restype = ctypes.c_int
+    lib.uavlae_mt_runs.argtypes = [p, i64, p, p, p, p]
+    lib.uavlae_mt_runs.restype = ctypes.c_int
     _STATE["lib"], LOADED = lib, True
     _STATE["mt"] = _mt_self_check()
     if not _STATE["mt"]:
@@ -484,6 +532,34 @@ def uniform(generator: torch.Generator, n: int) -> Tensor:
         if out is not None:
             return out
     return torch.rand(n, generator=generator)
+
+
+def uniform_runs(generator: torch.Generator, runs: list[tuple[torch.Size, str, float]]) -> list[Tensor] | None:
+    """Consecutive ``torch.rand`` draws from ``generator``, each transformed as torch would:
+    ``runs`` lists ``(shape, op, param)`` in draw order, ``op`` ``"*"`` (float32 ``u * param``)
+    or ``"<"`` (bool ``u < param``). The same tensors as drawing each with ``torch.rand`` and
+    applying the op, written by one C pass with no intermediate; ``None`` (do that) unless the
+    replay is on (:func:`uniform`), the generator is on the CPU and the runs hold at least
+    :data:`MT_MIN_DRAWS` numbers."""
+    lib = _STATE["lib"]
+    total = sum(math.prod(shape) for shape, _, _ in runs)
+    if not (_STATE["mt"] and lib is not None and generator.device.type == "cpu" and total >= MT_MIN_DRAWS):
+        return None
+    if any(op not in ("*", "<") for _, op, _ in runs):
+        raise ValueError(f"uniform_runs: op must be '*' or '<', got {[op for _, op, _ in runs]}")
+    st = generator.get_state()
+    if st.numel() != _MT_STATE_BYTES:
+        return None
+    outs = [torch.empty(shape, dtype=torch.bool if op == "<" else torch.float32) for shape, op, _ in runs]
+    k = len(runs)
+    code = lib.uavlae_mt_runs(
+        st.data_ptr(), k, (ctypes.c_int64 * k)(*[t.numel() for t in outs]), (ctypes.c_int * k)(*[op == "<" for _, op, _ in runs]),
+        (ctypes.c_float * k)(*[p for _, _, p in runs]), (ctypes.c_void_p * k)(*[t.data_ptr() for t in outs]),
+    )
+    if code != 0:
+        return None
+    generator.set_state(st)
+    return outs
 
 
 _MIN_ROWS_PER_THREAD = 512  # below this a thread costs more than it saves

@@ -383,10 +383,16 @@ def _retry(
     return fn(pos, v, ok, headings, blocked, blocked_mask, x_size, y_size, t_fly)
 
 
-def ou_noise_shapes(shape: torch.Size | tuple[int, ...], ou: OUConfig) -> list[torch.Size]:
-    """The shapes of :func:`ou_noise`'s four U[0, 1) draws, in the order it draws them."""
+def ou_noise_spec(shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig) -> list[tuple[str, torch.Size, str, float]]:
+    """:func:`ou_noise`'s four U[0, 1) draws in the order it draws them, each as ``(name, shape,
+    op, param)``: the entry is ``u < param`` (``op`` ``"<"``) or ``u * param`` (``"*"``)."""
     shape = torch.Size(shape)
-    return [shape, shape, shape, torch.Size((ou.heading_tries, *shape))]
+    return [
+        ("turn", shape, "<", ou.p_turn),
+        ("speed", shape, "*", m.v_max),
+        ("heading", shape, "*", 2.0 * math.pi),
+        ("retry_heading", torch.Size((ou.heading_tries, *shape)), "*", 2.0 * math.pi),
+    ]
 
 
 def ou_noise(
@@ -398,16 +404,11 @@ def ou_noise(
     slot, so the random stream depends on the seed only, not on the data. ``uniforms``: the four
     U[0, 1) tensors (turn, speed, heading: ``shape``; retries: ``[heading_tries, *shape]``)
     already drawn, in this order, from ``generator`` (world.draw_noise draws them at once)."""
+    spec = ou_noise_spec(shape, ou, m)
     if uniforms is None:
         kw = dict(generator=generator, device=device, dtype=dtype)
-        uniforms = [torch.rand(s, **kw) for s in ou_noise_shapes(shape, ou)]
-    u_turn, u_speed, u_heading, u_retry = uniforms
-    return {
-        "turn": u_turn < ou.p_turn,
-        "speed": u_speed * m.v_max,
-        "heading": u_heading * (2.0 * math.pi),
-        "retry_heading": u_retry * (2.0 * math.pi),
-    }
+        uniforms = [torch.rand(s, **kw) for _, s, _, _ in spec]
+    return {name: u < p if op == "<" else u * p for (name, _, op, p), u in zip(spec, uniforms)}
 
 
 def ou_step(

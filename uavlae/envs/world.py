@@ -150,17 +150,18 @@ def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
 
 def draw_noise(state: dict[str, Tensor], cfg: EnvConfig, generator: torch.Generator) -> dict[str, Tensor]:
     """Every random number one slot needs, drawn from the env's generator (outside the pure step):
-    the OU draws (physics.ou_noise), then the GE tie-break noise. On CPU in float32 they are drawn
-    as one run of ``torch.rand`` numbers by ckernels.uniform (the same numbers, faster), split."""
+    the OU draws (physics.ou_noise), then the GE tie-break noise. On CPU in float32 the C replay of
+    torch's generator draws and transforms them in one pass (ckernels.uniform_runs: the same
+    numbers); elsewhere torch.rand and physics.ou_noise."""
     ou_pos, ge = state["ou_pos"], state["ge_pos"]
-    shapes = [*ph.ou_noise_shapes(ou_pos.shape[:-1], cfg.ou), ge.shape[:-1]]
-    if ou_pos.device.type == "cpu" and ou_pos.dtype == ge.dtype == torch.float32 and generator.device.type == "cpu":
-        run = ckernels.uniform(generator, sum(s.numel() for s in shapes))
-        u = [x.view(s) for x, s in zip(run.split([s.numel() for s in shapes]), shapes)]
-    else:
-        u = [torch.rand(s, generator=generator, device=x.device, dtype=x.dtype)
-             for s, x in zip(shapes, [ou_pos] * 4 + [ge])]
-    noise = ph.ou_noise(shapes[0], cfg.ou, cfg.motion, generator, uniforms=u[:4])
+    spec = [*ph.ou_noise_spec(ou_pos.shape[:-1], cfg.ou, cfg.motion), ("ge_tie", ge.shape[:-1], "*", 1.0)]
+    if ou_pos.device.type == "cpu" and ou_pos.dtype == ge.dtype == torch.float32:
+        drawn = ckernels.uniform_runs(generator, [(s, op, p) for _, s, op, p in spec])
+        if drawn is not None:
+            return {name: t for (name, *_), t in zip(spec, drawn)}
+    u = [torch.rand(s, generator=generator, device=x.device, dtype=x.dtype)
+         for (_, s, _, _), x in zip(spec, [ou_pos] * 4 + [ge])]
+    noise = ph.ou_noise(spec[0][1], cfg.ou, cfg.motion, generator, uniforms=u[:4])
     noise["ge_tie"] = u[4]
     return noise
 
