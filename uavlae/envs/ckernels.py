@@ -398,8 +398,9 @@ OPENMP_FLAGS = ("-fopenmp",)
 
 LOADED = False  # read by physics.ou_step while torch.compile traces (a constant it guards on)
 _TRIED = False
-# Below this many scenarios the custom ops' fixed cost per call (about 30 us each) outweighs what
-# the kernels save: smaller compiled batches keep the torch code (B = 64: x0.96 with the kernels).
+# Below this many scenarios the custom ops' fixed cost per call (about 70 us each at B = 8, timed
+# by hand: 30 us of dispatch, 40 us of Python checks and the ctypes call) outweighs what the
+# kernels save: smaller compiled batches keep the torch code (B = 64: x0.96 with the kernels).
 MIN_BATCH = 256
 # The library and the ops of this source, kept on ``sys`` so that importing this module again
 # (benchmarks/env_ab.py imports two source trees in one process) reuses them instead of
