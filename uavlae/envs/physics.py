@@ -383,7 +383,9 @@ def _retry(
     return fn(pos, v, ok, headings, blocked, blocked_mask, x_size, y_size, t_fly)
 
 
-def ou_noise_spec(shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig) -> list[tuple[str, torch.Size, str, float]]:
+def ou_noise_spec(
+    shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig
+) -> list[tuple[str, torch.Size, str, float]]:
     """:func:`ou_noise`'s four U[0, 1) draws in the order it draws them, each as ``(name, shape,
     op, param)``: the entry is ``u < param`` (``op`` ``"<"``) or ``u * param`` (``"*"``)."""
     shape = torch.Size(shape)
