@@ -11,7 +11,9 @@ through ``UAVGymEnv`` with numpy actions. ``--compile`` adds, for each batch siz
 one in the same run; its one-off compile time (first step) is reported separately as
 ``compile_seconds``. ``--extra-threads 2`` (the default) then measures the largest batch again
 with 2 intra-op threads (rows with ``"threads": 2``; every other row runs with ``--threads``,
-default 1). Writes ``benchmarks/env_throughput.json``.
+default 1). After each row the gymnasium loop runs again (``--gym-seconds``): a row's
+``ratio_vs_gym`` is against the mean of the gymnasium runs just before and after it, because this
+machine's speed drifts by up to 2x within minutes. Writes ``benchmarks/env_throughput.json``.
 """
 
 from __future__ import annotations
@@ -91,10 +93,20 @@ def bench_gym(seconds: float, seed: int = 0) -> dict:
             "episodes": episodes}
 
 
-def _row(b: int, compiled: bool, threads: int, args: argparse.Namespace, gym: dict) -> dict:
+def _row(b: int, compiled: bool, threads: int, args: argparse.Namespace, gym: list[dict]) -> dict:
+    """One TorchRL row, then the gymnasium loop again (on ``args.threads``, like the first one):
+    the row's ratio is against the mean of the gymnasium runs just before and just after it
+    (``gym`` holds them in order), so a drift of the machine's speed between rows does not
+    enter the ratio."""
     r = bench_torchrl(b, args.seconds, args.device, compile_step=compiled)
     r["threads"] = threads
-    r["ratio_vs_gym"] = r["env_steps_per_s"] / gym["env_steps_per_s"]
+    n = torch.get_num_threads()
+    torch.set_num_threads(args.threads)
+    gym.append(bench_gym(args.gym_seconds))
+    torch.set_num_threads(n)
+    before, after = gym[-2]["env_steps_per_s"], gym[-1]["env_steps_per_s"]
+    r["gym_adjacent_env_steps_per_s"] = [before, after]
+    r["ratio_vs_gym"] = r["env_steps_per_s"] / ((before + after) / 2)
     tag = "compiled" if compiled else "eager"
     extra = f"  (one-off compile {r['compile_seconds']:.1f} s)" if compiled else ""
     print(f"UAVEnv B={b:>5} ({args.device}, {tag:>8}, {threads} thread{'s' if threads > 1 else ''}): "
@@ -115,12 +127,14 @@ def main() -> None:
                     help="after the main table, measure the largest batch again with N intra-op "
                          "threads (eager, and compiled with --compile); rows labelled threads=N "
                          "(default: 2, the target machine's core count; none: no extra rows)")
+    ap.add_argument("--gym-seconds", type=float, default=1.5,
+                    help="length of the gymnasium run after each row (its ratio's reference)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("env_throughput.json")))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    gym = bench_gym(args.seconds)
-    print(f"gymnasium adapter, one scenario at a time: {gym['env_steps_per_s']:,.0f} env-steps/s")
+    gym = [bench_gym(args.seconds)]
+    print(f"gymnasium adapter, one scenario at a time: {gym[0]['env_steps_per_s']:,.0f} env-steps/s")
     rows = []
     for b in args.batches:
         for compiled in (False, True) if args.compile else (False,):
@@ -134,7 +148,7 @@ def main() -> None:
             rows.append(_row(max(args.batches), compiled, n, args, gym))
         torch.set_num_threads(args.threads)
     result = {"machine": describe_machine(), "device": args.device, "threads": args.threads,
-              "seconds_per_measurement": args.seconds, "gym": gym, "torchrl": rows,
+              "seconds_per_measurement": args.seconds, "gym": gym[0], "gym_runs": gym, "torchrl": rows,
               "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     out = Path(args.out)
     tmp = out.with_suffix(".tmp")
