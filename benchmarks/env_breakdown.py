@@ -149,6 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--out", default=str(OUT))
     a = p.parse_args(argv)
+    from uavlae.factories import dump_json
     from uavlae.machine import describe_machine
 
     rows = []
@@ -159,11 +160,8 @@ def main(argv: list[str] | None = None) -> None:
     out = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
            "command": "python benchmarks/env_breakdown.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "args": {k: v for k, v in vars(a).items() if k != "out"}, "rows": rows}
-    path = Path(a.out)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(out, indent=1) + "\n")
-    tmp.replace(path)
-    print(f"wrote {path}")
+    dump_json(Path(a.out), out)
+    print(f"wrote {a.out}")
 
 
 if __name__ == "__main__":

@@ -19,13 +19,13 @@ machine's speed drifts by up to 2x within minutes. Writes ``benchmarks/env_throu
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
 
 import torch
 
+from uavlae.factories import dump_json
 from uavlae.machine import describe_machine
 
 
@@ -150,11 +150,8 @@ def main() -> None:
     result = {"machine": describe_machine(), "device": args.device, "threads": args.threads,
               "seconds_per_measurement": args.seconds, "gym": gym[0], "gym_runs": gym, "torchrl": rows,
               "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
-    out = Path(args.out)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=2) + "\n")
-    tmp.replace(out)
-    print(f"wrote {out}")
+    dump_json(Path(args.out), result)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
