@@ -1,6 +1,7 @@
 """The C kernels of the compiled CPU step (uavlae/envs/ckernels.py) against hand-computed values
 and against the torch physics they replace."""
 
+import ctypes
 import math
 import os
 import subprocess
@@ -206,7 +207,8 @@ def test_the_mt19937_replay_refuses_a_state_it_does_not_know_and_falls_back(monk
     bad = st.clone()
     bad[8:12] = 0  # left = 0: no torch generator is ever in that state
     out = torch.full((4,), -1.0)
-    assert ckernels._STATE["lib"].uavlae_mt_uniform(bad.data_ptr(), out.data_ptr(), 4) == 1
+    one_run = ((ctypes.c_int64 * 1)(4), (ctypes.c_int * 1)(0), (ctypes.c_float * 1)(1.0), (ctypes.c_void_p * 1)(out.data_ptr()))
+    assert ckernels._STATE["lib"].uavlae_mt_runs(bad.data_ptr(), 1, *one_run) == 1
     assert out.tolist() == [-1.0] * 4 and torch.equal(bad[12:], st[12:])  # nothing written
     monkeypatch.setattr(ckernels, "_MT_STATE_BYTES", 1)  # as if torch's state layout changed
     assert not ckernels._mt_self_check()

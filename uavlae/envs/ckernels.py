@@ -18,8 +18,9 @@ velocities may differ in the last bit (``cosf``/``sinf``/``sqrtf`` against ATen'
 generator left in the state torch would leave it in: a replay of ATen's mt19937 on the
 generator's ``get_state()`` bytes, whose twist and tempering vectorise (ATen draws one number at
 a time); :func:`uniform_runs` writes several such runs already transformed (``u * p``,
-``u < p``), as ``world.draw_noise`` needs them. :func:`load` checks it against ``torch.rand`` and leaves it off, with a warning, if
-they differ (a torch whose generator is laid out differently).
+``u < p``), as ``world.draw_noise`` needs them. :func:`load` checks the replay against
+``torch.rand`` and leaves it off, with a warning, if they differ (a torch whose generator is
+laid out differently).
 
 The torch functions in :mod:`uavlae.envs.physics` stay the reference: the eager env always
 uses them, and ``tests/test_ckernels.py`` checks these kernels against them. The kernels are
@@ -306,10 +307,10 @@ void uavlae_first_clear(int64_t m, int64_t k, int64_t nz, int nth, int rect, con
 /* torch.rand(n, generator=g) for a CPU generator, replayed: ATen's mt19937 (the engine behind
    torch.Generator on CPU) and its float32 uniform, (y & (2^24 - 1)) * 2^-24. `st` is the
    generator's get_state() bytes: seed (int64), left (int32), seeded (int32), next (uint64),
-   then the 624 state words, one per uint64; it is advanced in place, as torch advances it.
-   The same numbers, several times faster: the twist and the tempering run as plain loops the
-   compiler vectorises, where ATen draws one number at a time. Returns 1 on a state it does not
-   know (nothing written), 0 otherwise. */
+   then the 624 state words, one per uint64; uavlae_mt_runs advances it in place, as torch
+   advances it. The same numbers, several times faster: the twist and the tempering run as plain
+   loops the compiler vectorises, where ATen draws one number at a time. uavlae_mt_runs returns
+   1 on a state it does not know (nothing written), 0 otherwise. */
 #define MT_N 624
 #define MT_M 397
 static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
@@ -351,19 +352,9 @@ static void mt_fill(uint32_t *s, int32_t *left, uint64_t *next, float *out, int6
     }
 }
 
-int uavlae_mt_uniform(unsigned char *st, float *out, int64_t n) {
-    uint32_t s[MT_N];
-    int32_t left;
-    uint64_t next;
-    if (mt_load(st, s, &left, &next)) return 1;
-    mt_fill(s, &left, &next, out, n);
-    mt_store(st, s, left, next);
-    return 0;
-}
-
 /* nr consecutive runs of torch.rand numbers, each written as torch would transform it: run r
    is count[r] numbers u, out[r][i] = u * param[r] (float32; param 1: u itself) or, where
-   less[r], the bool u < param[r]. The same state contract as uavlae_mt_uniform. */
+   less[r], the bool u < param[r]. */
 int uavlae_mt_runs(unsigned char *st, int64_t nr, const int64_t *count, const int *less,
                    const float *param, void **out) {
     uint32_t s[MT_N];
@@ -481,8 +472,6 @@ def load() -> bool:
     lib.uavlae_free_grid.restype = None
     lib.uavlae_first_clear.argtypes = [i64, i64, i64, ctypes.c_int, ctypes.c_int, *([p] * 5), f32, ctypes.c_int, p]
     lib.uavlae_first_clear.restype = None
-    lib.uavlae_mt_uniform.argtypes = [p, p, i64]
-    lib.uavlae_mt_uniform.restype = ctypes.c_int
     lib.uavlae_mt_runs.argtypes = [p, i64, p, p, p, p]
     lib.uavlae_mt_runs.restype = ctypes.c_int
     _STATE["lib"], LOADED = lib, True
@@ -498,16 +487,29 @@ MT_MIN_DRAWS = 2048
 _MT_STATE_BYTES = 5056  # sizeof(at::CPUGeneratorImplState) in torch 2.x; anything else: torch.rand
 
 
-def _mt_uniform(generator: torch.Generator, n: int) -> Tensor | None:
-    lib = _STATE["lib"]
+def _mt_runs(generator: torch.Generator, runs: list[tuple[torch.Size, str, float]]) -> list[Tensor] | None:
+    """:func:`uniform_runs` without its conditions: ``None`` for a state the replay does not know."""
+    if any(op not in ("*", "<") for _, op, _ in runs):
+        raise ValueError(f"uniform_runs: op must be '*' or '<', got {[op for _, op, _ in runs]}")
     st = generator.get_state()
     if st.numel() != _MT_STATE_BYTES:
         return None
-    out = torch.empty(n)
-    if lib.uavlae_mt_uniform(st.data_ptr(), out.data_ptr(), n) != 0:
+    outs = [torch.empty(shape, dtype=torch.bool if op == "<" else torch.float32) for shape, op, _ in runs]
+    k = len(runs)
+    code = _STATE["lib"].uavlae_mt_runs(
+        st.data_ptr(), k, (ctypes.c_int64 * k)(*[t.numel() for t in outs]),
+        (ctypes.c_int * k)(*[op == "<" for _, op, _ in runs]), (ctypes.c_float * k)(*[p for _, _, p in runs]),
+        (ctypes.c_void_p * k)(*[t.data_ptr() for t in outs]),
+    )
+    if code != 0:
         return None
     generator.set_state(st)
-    return out
+    return outs
+
+
+def _mt_uniform(generator: torch.Generator, n: int) -> Tensor | None:
+    out = _mt_runs(generator, [(torch.Size([n]), "*", 1.0)])
+    return None if out is None else out[0]
 
 
 def _mt_self_check() -> bool:
@@ -542,25 +544,10 @@ def uniform_runs(generator: torch.Generator, runs: list[tuple[torch.Size, str, f
     applying the op, written by one C pass with no intermediate; ``None`` (do that) unless the
     replay is on (:func:`uniform`), the generator is on the CPU and the runs hold at least
     :data:`MT_MIN_DRAWS` numbers."""
-    lib = _STATE["lib"]
     total = sum(math.prod(shape) for shape, _, _ in runs)
-    if not (_STATE["mt"] and lib is not None and generator.device.type == "cpu" and total >= MT_MIN_DRAWS):
+    if not (_STATE["mt"] and _STATE["lib"] is not None and generator.device.type == "cpu" and total >= MT_MIN_DRAWS):
         return None
-    if any(op not in ("*", "<") for _, op, _ in runs):
-        raise ValueError(f"uniform_runs: op must be '*' or '<', got {[op for _, op, _ in runs]}")
-    st = generator.get_state()
-    if st.numel() != _MT_STATE_BYTES:
-        return None
-    outs = [torch.empty(shape, dtype=torch.bool if op == "<" else torch.float32) for shape, op, _ in runs]
-    k = len(runs)
-    code = lib.uavlae_mt_runs(
-        st.data_ptr(), k, (ctypes.c_int64 * k)(*[t.numel() for t in outs]), (ctypes.c_int * k)(*[op == "<" for _, op, _ in runs]),
-        (ctypes.c_float * k)(*[p for _, _, p in runs]), (ctypes.c_void_p * k)(*[t.data_ptr() for t in outs]),
-    )
-    if code != 0:
-        return None
-    generator.set_state(st)
-    return outs
+    return _mt_runs(generator, runs)
 
 
 _MIN_ROWS_PER_THREAD = 512  # below this a thread costs more than it saves
@@ -571,14 +558,21 @@ def _threads(rows: int, per_thread: int = _MIN_ROWS_PER_THREAD) -> int:
     return max(1, min(torch.get_num_threads(), rows // per_thread))
 
 
+def _cpu_tensors(*specs: tuple[Tensor, torch.dtype, int]) -> bool:
+    """Whether the kernels are loaded and every ``(tensor, dtype, dim)`` is a CPU tensor of that
+    dtype and number of dimensions: the inputs the C functions take (else: the torch code)."""
+    return _STATE["lib"] is not None and all(
+        t.device.type == "cpu" and t.dtype == dtype and t.dim() == dim for t, dtype, dim in specs
+    )
+
+
 def flood(free: Tensor, seed: Tensor) -> Tensor | None:
     """The 4-neighbour component of ``seed`` in ``free`` (both int64 ``[nb, ny, nx]``, 64
     scenarios per word, seed bits free), as ``scenario._connected``'s flood fill reaches it;
     ``None`` (flood with torch) unless the kernels are loaded and both are CPU int64 tensors of
     that shape."""
     lib = _STATE["lib"]
-    if (lib is None or free.dim() != 3 or seed.shape != free.shape or free.dtype != torch.int64
-            or seed.dtype != torch.int64 or free.device.type != "cpu" or seed.device.type != "cpu"):
+    if not _cpu_tensors((free, torch.int64, 3), (seed, torch.int64, 3)) or seed.shape != free.shape:
         return None
     free, reached = free.contiguous(), seed.clone(memory_format=torch.contiguous_format)
     lib.uavlae_flood(*free.shape, _threads(free.shape[0], 1), free.data_ptr(), reached.data_ptr())
@@ -594,11 +588,10 @@ def free_grid(rects: Tensor, rmask: Tensor, cx: Tensor, cy: Tensor, d: float, km
     of each scenario's first point. The same bits as the torch code; ``None`` (use it) unless the
     kernels are loaded and every tensor is on the CPU with the expected dtype."""
     lib = _STATE["lib"]
-    n, nr = rmask.shape
-    want = ((rects, torch.float32, 3), (rmask, torch.bool, 2), (cx, torch.float32, 1), (cy, torch.float32, 1),
-            (cells, torch.int64, 2), (cmask, torch.bool, 2))
-    if lib is None or any(t.device.type != "cpu" or t.dtype != dt or t.dim() != dim for t, dt, dim in want):
+    if not _cpu_tensors((rects, torch.float32, 3), (rmask, torch.bool, 2), (cx, torch.float32, 1),
+                        (cy, torch.float32, 1), (cells, torch.int64, 2), (cmask, torch.bool, 2)):
         return None
+    n, nr = rmask.shape
     ny, nx, np_ = cy.shape[0], cx.shape[0], cells.shape[1]
     if rects.shape != (n, nr, 4) or cells.shape[0] != n or cmask.shape != cells.shape or n == 0 or np_ == 0:
         return None
@@ -621,9 +614,8 @@ def first_clear(cand: Tensor, pre: Tensor, row: Tensor, rects: Tensor, rmask: Te
     overlapping (``scenario._rects_overlap``); -1 when none does. int64 [m]; ``None`` (use the
     torch code) unless the kernels are loaded and the tensors are CPU float32/bool/int64."""
     lib = _STATE["lib"]
-    want = ((cand, torch.float32, 3), (pre, torch.bool, 2), (row, torch.int64, 1), (rects, torch.float32, 3),
-            (rmask, torch.bool, 2))
-    if lib is None or any(t.device.type != "cpu" or t.dtype != dt or t.dim() != dim for t, dt, dim in want):
+    if not _cpu_tensors((cand, torch.float32, 3), (pre, torch.bool, 2), (row, torch.int64, 1),
+                        (rects, torch.float32, 3), (rmask, torch.bool, 2)):
         return None
     m, k, w = cand.shape
     n, nz = rmask.shape
