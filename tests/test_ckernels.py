@@ -158,6 +158,17 @@ def test_a_compiler_without_openmp_gets_the_one_thread_build(tmp_path):
     assert [p.name.endswith("_serial.so") for p in built] == [True]
 
 
+def _obs_c(p, ge, rem, gm, zones, zmask, ou_pos, ou_vel, ou_mask):
+    """obs_cpu with the zones split into NFZs, RZs and BZs and every divisor 1."""
+    b, n = zones.shape[:2]
+    z, zm = [zones[:, i::3].contiguous() for i in range(3)], [zmask[:, i::3].contiguous() for i in range(3)]
+    d = torch.rand(b, generator=torch.Generator().manual_seed(0)) * 80
+    rects = zones[:, 0].contiguous()  # a TA and an LA
+    width = ckernels.obs_width(ge.shape[1], *(m.shape[1] for m in zm), ou_mask.shape[1], extra=True)
+    return ckernels.obs_cpu(ge, rem, gm, z[0], zm[0], z[1], zm[1], z[2], zm[2], ou_pos, ou_vel, ou_mask, p, p * 0.1,
+                            d, d, rects, rects, d, d - 10, d, d, d, torch.ones(width), 30.0, True, 50.0)
+
+
 def test_row_ranges_on_two_threads_give_the_one_thread_result():
     g = torch.Generator().manual_seed(3)
     b, k, z = 2048, 7, 6
@@ -174,7 +185,8 @@ def test_row_ranges_on_two_threads_give_the_one_thread_result():
         results = []
         for n in (1, 2):
             torch.set_num_threads(n)
-            results.append((*_ou_c(pos, vel, mask, blocked, bmask, noise), *_serve_c(pos[:, 0], ge, rem, gm, tie)))
+            results.append((*_ou_c(pos, vel, mask, blocked, bmask, noise), *_serve_c(pos[:, 0], ge, rem, gm, tie),
+                            _obs_c(pos[:, 0], ge, rem, gm, blocked, bmask, pos, vel, mask)))
     finally:
         torch.set_num_threads(threads)
     assert all(torch.equal(x, y) for x, y in zip(*results))
@@ -372,3 +384,83 @@ def test_sampler_with_the_kernels_draws_the_torch_scenarios(monkeypatch):
     slow = sc.sample_scenarios(cfg, 300, g)
     assert all(torch.equal(fast[k], slow[k]) for k in sc.SCENARIO_KEYS)
     assert torch.equal(fast_state, g.get_state())
+
+
+def _obs_row_inputs():
+    """Two hand-made rows for obs_cpu: 1 GE, one zone of each type, 3 OUs."""
+    t = torch.tensor
+    inf = math.inf
+    return dict(
+        ge_pos=t([[[100.0, 200.0]], [[0.0, 0.0]]]), ge_remaining=t([[5.0], [0.0]]),
+        ge_mask=t([[True], [False]]),
+        nfz=t([[[10.0, 20.0, 40.0, 60.0]], [[0.0, 0.0, 0.0, 0.0]]]), nfz_mask=t([[True], [False]]),
+        rz=t([[[0.0, 0.0, 0.0, 0.0]], [[-5.0, -5.0, 5.0, 5.0]]]), rz_mask=t([[False], [True]]),
+        bz=t([[[100.0, 100.0, 110.0, 130.0]], [[0.0, 0.0, 0.0, 0.0]]]), bz_mask=t([[True], [False]]),
+        # row 0 from (50, 50): 20 m, 5 m, 40 m (beyond the 30 m radius); row 1 from (0, 0): an
+        # absent OU 10 m west, then two present ones at exactly 10 m
+        ou_pos=t([[[70.0, 50.0], [53.0, 54.0], [90.0, 50.0]], [[-10.0, 0.0], [0.0, 10.0], [10.0, 0.0]]]),
+        ou_vel=t([[[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], [[-1.0, -1.0], [7.0, 8.0], [9.0, 10.0]]]),
+        ou_mask=t([[True, True, True], [False, True, True]]),
+        position=t([[50.0, 50.0], [0.0, 0.0]]), velocity=t([[2.0, -4.0], [0.0, 0.0]]),
+        energy_left=t([1000.0, 8.0]), slot_data=t([3.0, 0.0]),
+        takeoff=t([[0.0, 0.0, 20.0, 20.0], [0.0, 0.0, 20.0, 20.0]]),
+        landing=t([[480.0, 480.0, 500.0, 500.0], [480.0, 480.0, 500.0, 500.0]]),
+        d_bz=t([70.0, inf]), d_nfz=t([10.0, inf]), d_rz=t([inf, 0.0]), d_boundary=t([50.0, 0.0]),
+        d_la=t([300.0, 678.0]),
+    )
+
+
+def test_obs_by_hand():
+    x = _obs_row_inputs()
+    width = ckernels.obs_width(1, 1, 1, 1, 3, extra=True)
+    assert width == 5 * 7 + 14 + 6
+    obs = ckernels.obs_cpu(*x.values(), torch.full((width,), 2.0), 30.0, True, 50.0)
+    row0 = [
+        50, 100, 2.5, 0.5, 0.5,  # GE at (100, 200) with 5 left, present: /2
+        5, 10, 15, 20, 0.5,  # NFZ [10, 20, 40, 60]: corner (10, 20), 30 x 40
+        0, 0, 0, 0, 0,  # no RZ
+        50, 50, 5, 15, 0.5,  # BZ [100, 100, 110, 130]
+        1.5, 2, 10, 0, 0, 0,  # OUs nearest first: (3, 4) at 5 m, (20, 0) at 20 m, the one at 40 m hidden
+        1.5, 2, 0.5, 1, 0, 0,  # their velocities (3, 4), (1, 2), hidden: 0
+        0.5, 0.5, 0,  # visibility
+        25, 25, 1, -2, 500, 1.5, 0, 0, 10, 10, 240, 240, 250, 250,  # p, v, energy, slot data, TA, LA
+        25, 5, 25, 25, 150, 0,  # d_bz 70 -> 50, d_nfz 10, d_rz inf -> 50, d_boundary 50, d_la 300, not in RZ
+    ]
+    assert obs[0].tolist() == row0
+    row1 = obs[1].tolist()
+    # the tie at 10 m keeps index order: (0, 10) then (10, 0); the absent OU goes last
+    assert row1[20:35] == [0, 5, 5, 0, 0, 0, 3.5, 4, 4.5, 5, 0, 0, 0.5, 0.5, 0]
+    assert math.copysign(1.0, row1[24]) == -1.0 and math.copysign(1.0, row1[30]) == -1.0  # -10 * 0 = -0
+    assert row1[10:15] == [-2.5, -2.5, 5, 5, 0.5] and row1[-6:] == [25, 25, 0, 0, 339, 0.5]  # in the RZ
+    # without the extra features the row stops after LA
+    short = ckernels.obs_cpu(*x.values(), torch.full((width - 6,), 2.0), 30.0, False, 50.0)
+    assert torch.equal(short, obs[:, :-6])
+
+
+def test_obs_is_the_layout_s_build_bit_for_bit():
+    from uavlae.envs import UAVEnv
+
+    env = UAVEnv(batch_size=[300], seed=4)
+    td = env.reset()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(15):  # OUs move, GEs get served, some rows reset
+        td["action"] = torch.rand(300, 2, generator=g) * 2 - 1
+        _, td = env.step_and_maybe_reset(td)
+    state = {k: td["state", k] for k in env.raw_state_keys}
+    lay, cfg = env.layout, env.cfg
+    div = lay._divisor.float()[: lay.pre_ego_size]
+    obs = ckernels.obs_cpu(*(state[n] for n, _, _ in ckernels.OBS_INPUTS), div, float(cfg.safety.perception_radius),
+                           True, float(cfg.obs_distance_scale))
+    ref = lay.build(state)
+    assert torch.equal(obs, ref) and torch.equal(obs.signbit(), ref.signbit())
+    assert (ref[:, 5 * 15 + 5 * 9 + 4 * 7: 5 * 15 + 5 * 9 + 5 * 7] > 0).any()  # some OUs are visible
+
+
+def test_obs_bad_input_names_the_tensor():
+    x = _obs_row_inputs()
+    x["ou_mask"] = x["ou_mask"].float()
+    with pytest.raises(ValueError, match=r"ou_mask must be a CPU torch.bool tensor of shape \[2, 3\]"):
+        ckernels.obs_cpu(*x.values(), torch.ones(55), 30.0, True, 50.0)
+    x = _obs_row_inputs()
+    with pytest.raises(ValueError, match=r"divisor must be a CPU float32 tensor of shape \[49\]"):
+        ckernels.obs_cpu(*x.values(), torch.ones(55), 30.0, False, 50.0)

@@ -93,3 +93,34 @@ def test_compiled_step_matches_eager_step_by_step_at_scale():
         full = td.clone(False).set("next", out_e)
         td = eager.maybe_reset(eager._step_mdp(full))
     assert served > 0
+
+
+@pytest.mark.parametrize("ego", [False, True])
+def test_compiled_observation_kernel_gives_inductor_s_build_bit_for_bit(ego):
+    # at B >= MIN_BATCH the compiled CPU step writes the observation (before the ego columns)
+    # with ckernels.obs_cpu; with layout.c_kernel off it keeps Inductor's build: every output of
+    # the two is equal, bit for bit, across steps and partial resets
+    from uavlae.envs import ckernels
+    from uavlae.envs.config import EnvConfig
+
+    if not ckernels.load():
+        pytest.skip("no C compiler: the compiled step keeps its torch code")
+    b = ckernels.MIN_BATCH
+    envs = [UAVEnv(EnvConfig(ego_features=ego), batch_size=[b], seed=5, compile_step=True) for _ in range(2)]
+    envs[1].layout.c_kernel = False
+    tds = [e.reset() for e in envs]
+    gen = torch.Generator().manual_seed(0)
+    done = 0
+    for _ in range(10):
+        action = torch.rand(b, 2, generator=gen) * 2 - 1
+        outs = []
+        for i, e in enumerate(envs):
+            tds[i]["action"] = action.clone()
+            out, tds[i] = e.step_and_maybe_reset(tds[i])
+            outs.append(out)
+        done += int(outs[0]["next", "done"].sum())
+        for k in outs[0].keys(True, True):
+            assert torch.equal(outs[0][k], outs[1][k]), k
+        obs = outs[0]["next", "observation"]
+        assert obs.shape == (b, envs[0].layout.size) and torch.equal(obs.signbit(), outs[1]["next", "observation"].signbit())
+    assert done > 0

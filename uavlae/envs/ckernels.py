@@ -1,5 +1,5 @@
-"""C kernels for the CPU step: the OU step and the GE service of the compiled step
-(``UAVEnv(compile_step=True)``), the random draws of every CPU step, and three parts of the
+"""C kernels for the CPU step: the OU step, the GE service and the observation of the compiled
+step (``UAVEnv(compile_step=True)``), the random draws of every CPU step, and three parts of the
 scenario sampler: the connectivity check's occupancy grid (:func:`free_grid`) and flood fill
 (:func:`flood`), and the scan for each slot's first valid candidate (:func:`first_clear`).
 They give the same numbers as the torch code they replace (the draws x6, ``sample_scenarios``
@@ -27,9 +27,13 @@ uses them, and ``tests/test_ckernels.py`` checks these kernels against them. The
 built on first use with the C compiler (``$CC``, else ``cc``/``gcc``, the one Inductor needs
 anyway) into ``$UAVLAE_CACHE_DIR`` (default ``~/.cache/uavlae``), atomically; without a
 compiler, with ``UAVLAE_C_KERNELS=0``, or when the build fails (a warning names the cause), the
-step keeps its torch code. The OU and service kernels are registered as torch custom ops
-(:data:`ou_step_cpu`, :data:`serve_cpu`) so that ``torch.compile`` calls them from inside its
-graph; batches below :data:`MIN_BATCH` keep the torch code.
+step keeps its torch code. The OU, service and observation kernels are registered as torch
+custom ops (:data:`ou_step_cpu`, :data:`serve_cpu`, :data:`obs_cpu`) so that ``torch.compile``
+calls them from inside its graph; batches below :data:`MIN_BATCH` keep the torch code.
+
+:data:`obs_cpu` writes the observation's columns (all but the ego-centric ones, which stay
+torch) one row at a time; Inductor wrote them in a loop over the batch per part, a fifth of its
+compiled step. It gives Inductor's numbers bit for bit.
 """
 
 from __future__ import annotations
@@ -48,7 +52,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["applies", "first_clear", "flood", "free_grid", "uniform_runs", "load", "LOADED", "SOURCE", "ou_step_cpu", "serve_cpu", "uniform"]
+__all__ = [
+    "applies", "first_clear", "flood", "free_grid", "uniform_runs", "load", "LOADED", "SOURCE", "obs_cpu", "obs_width",
+    "ou_step_cpu", "serve_cpu", "uniform",
+]
 
 SOURCE = r"""
 #include <math.h>
@@ -168,6 +175,86 @@ void uavlae_serve(int64_t nb, int64_t ng, int nth, const float *p, const float *
         float got = dv < cap ? dv : cap;
         td[b] = got;
         out[pick] = r[pick] - got;
+    }
+}
+
+/* world.ObservationLayout.build's columns before the ego ones, for [B] rows: each row's raw
+   values are written, then a block of rows is divided by the divisors `div` in loops the
+   compiler vectorises (float division is exact per lane, so the same numbers as torch's; a row
+   divided right after its scalar stores would stall on store forwarding). Per
+   row: the GEs' positions, remaining data, presence twice; per zone type (nfz, rz, bz)
+   [x0, y0, x1 - x0, y1 - y0], then presence; the OUs nearest first, those present within `pr`
+   (by sqrtf(dx dx + dy dy)) before the others and ties in index order (world._stable_order), as
+   relative position and velocity times visibility (a hidden OU gives +-0, as x * 0 does in
+   torch), then visibility; the DCU's position, velocity, energy left, slot data, TA and LA;
+   with `extra`, the extra features: the distances to the nearest BZ, NFZ, RZ and boundary at
+   most `scale`, to LA, and whether the DCU is inside an RZ. */
+static inline int64_t zone_cols(float *o, int64_t c, const float *r, const bool *m, int64_t n) {
+    for (int64_t z = 0; z < n; z++, c += 4) {
+        const float *q = r + 4 * z;
+        o[c] = q[0]; o[c + 1] = q[1]; o[c + 2] = q[2] - q[0]; o[c + 3] = q[3] - q[1];
+    }
+    for (int64_t z = 0; z < n; z++, c++) o[c] = (float)m[z];
+    return c;
+}
+
+void uavlae_obs(int64_t nb, int64_t ng, int64_t nn, int64_t nr, int64_t nz, int64_t nk, int nth,
+                const float *ge, const float *rem, const bool *gm, const float *nfz, const bool *nfm,
+                const float *rz, const bool *rzm, const float *bz, const bool *bzm, const float *ou,
+                const float *ouv, const bool *oum, const float *p, const float *v, const float *el,
+                const float *sd, const float *ta, const float *la, float pr, int extra,
+                const float *dbz, const float *dnfz, const float *drz, const float *dbd,
+                const float *dla, float scale, const float *d, float *obs) {
+    const int64_t w = 5 * (ng + nn + nr + nz + nk) + 14 + (extra ? 6 : 0), block = 16;
+    ROWS_PARALLEL
+    for (int64_t b0 = 0; b0 < nb; b0 += block) {
+        const int64_t b1 = b0 + block < nb ? b0 + block : nb;
+        for (int64_t b = b0; b < b1; b++) {
+            float *restrict o = obs + w * b;
+            int64_t c = 0;
+            const float *g = ge + 2 * ng * b;
+            for (int64_t i = 0; i < 2 * ng; i++, c++) o[c] = g[i];
+            for (int64_t i = 0; i < ng; i++, c++) o[c] = rem[ng * b + i];
+            for (int64_t t = 0; t < 2; t++)
+                for (int64_t i = 0; i < ng; i++, c++) o[c] = (float)gm[ng * b + i];
+            c = zone_cols(o, c, nfz + 4 * nn * b, nfm + nn * b, nn);
+            c = zone_cols(o, c, rz + 4 * nr * b, rzm + nr * b, nr);
+            c = zone_cols(o, c, bz + 4 * nz * b, bzm + nz * b, nz);
+            const float px = p[2 * b], py = p[2 * b + 1];
+            float rx[nk > 0 ? nk : 1], ry[nk > 0 ? nk : 1], key[nk > 0 ? nk : 1];
+            int64_t order[nk > 0 ? nk : 1];
+            for (int64_t i = 0; i < nk; i++) {
+                const int64_t j = nk * b + i;
+                rx[i] = ou[2 * j] - px; ry[i] = ou[2 * j + 1] - py;
+                const float dist = sqrtf(rx[i] * rx[i] + ry[i] * ry[i]);
+                key[i] = (oum[j] && dist <= pr) ? dist : INFINITY;
+                int64_t s = i;  /* stable insertion: i goes after every earlier key <= its own */
+                while (s > 0 && key[order[s - 1]] > key[i]) { order[s] = order[s - 1]; s--; }
+                order[s] = i;
+            }
+            for (int64_t s = 0; s < nk; s++) {
+                const int64_t i = order[s], j = nk * b + i;
+                const float vis = (float)(key[i] < INFINITY);
+                o[c + 2 * s] = rx[i] * vis; o[c + 2 * s + 1] = ry[i] * vis;
+                o[c + 2 * (nk + s)] = ouv[2 * j] * vis; o[c + 2 * (nk + s) + 1] = ouv[2 * j + 1] * vis;
+                o[c + 4 * nk + s] = vis;
+            }
+            c += 5 * nk;
+            o[c] = px; o[c + 1] = py; o[c + 2] = v[2 * b]; o[c + 3] = v[2 * b + 1];
+            o[c + 4] = el[b]; o[c + 5] = sd[b];
+            c += 6;
+            for (int64_t i = 0; i < 4; i++, c++) o[c] = ta[4 * b + i];
+            for (int64_t i = 0; i < 4; i++, c++) o[c] = la[4 * b + i];
+            if (extra) {
+                const float near[4] = {dbz[b], dnfz[b], drz[b], dbd[b]};
+                for (int64_t i = 0; i < 4; i++, c++) o[c] = near[i] > scale ? scale : near[i];
+                o[c] = dla[b]; o[c + 1] = (float)(drz[b] <= 0.0f);
+            }
+        }
+        for (int64_t b = b0; b < b1; b++) {
+            float *restrict o = obs + w * b;
+            for (int64_t i = 0; i < w; i++) o[i] = o[i] / d[i];
+        }
     }
 }
 
@@ -440,7 +527,7 @@ def _build(cc: str) -> Path:
 
 def load() -> bool:
     """Build (once) and load the kernels; ``True`` when :data:`ou_step_cpu`, :data:`serve_cpu`,
-    :func:`flood`, :func:`free_grid` and :func:`first_clear` can run (:func:`uniform` also needs
+    :data:`obs_cpu`, :func:`flood`, :func:`free_grid` and :func:`first_clear` can run (:func:`uniform` also needs
     its check against ``torch.rand`` to pass).
     Never raises: a missing compiler or a failed build warns and returns ``False``."""
     global LOADED, _TRIED
@@ -466,6 +553,8 @@ def load() -> bool:
     lib.uavlae_ou_step.restype = None
     lib.uavlae_serve.argtypes = [i64, i64, ctypes.c_int, *([p] * 5), *([f32] * 6), p, p, p]
     lib.uavlae_serve.restype = None
+    lib.uavlae_obs.argtypes = [*([i64] * 6), ctypes.c_int, *([p] * 18), f32, ctypes.c_int, *([p] * 5), f32, p, p]
+    lib.uavlae_obs.restype = None
     lib.uavlae_flood.argtypes = [i64, i64, i64, ctypes.c_int, p, p]
     lib.uavlae_flood.restype = None
     lib.uavlae_free_grid.argtypes = [i64, i64, i64, i64, i64, ctypes.c_int, *([p] * 4), f32, f32, i64, p, p, p, p]
@@ -708,14 +797,78 @@ def _serve_fake(p, ge_pos, remaining, mask, tie_noise, altitude, tx_power, alpha
     return p.new_empty(b), p.new_empty(b, dtype=torch.int64), torch.empty_like(remaining)
 
 
+# the entries of the observation's base columns, in the C function's order: name, dtype, shape
+# in terms of B, G, the three zone maxima (N, R, Z) and K
+OBS_INPUTS = (
+    ("ge_pos", torch.float32, "BG2"), ("ge_remaining", torch.float32, "BG"), ("ge_mask", torch.bool, "BG"),
+    ("nfz", torch.float32, "BN4"), ("nfz_mask", torch.bool, "BN"), ("rz", torch.float32, "BR4"),
+    ("rz_mask", torch.bool, "BR"), ("bz", torch.float32, "BZ4"), ("bz_mask", torch.bool, "BZ"),
+    ("ou_pos", torch.float32, "BK2"), ("ou_vel", torch.float32, "BK2"), ("ou_mask", torch.bool, "BK"),
+    ("position", torch.float32, "B2"), ("velocity", torch.float32, "B2"), ("energy_left", torch.float32, "B"),
+    ("slot_data", torch.float32, "B"), ("takeoff", torch.float32, "B4"), ("landing", torch.float32, "B4"),
+    ("d_bz", torch.float32, "B"), ("d_nfz", torch.float32, "B"), ("d_rz", torch.float32, "B"),
+    ("d_boundary", torch.float32, "B"), ("d_la", torch.float32, "B"),
+)
+
+
+def obs_width(g: int, n: int, r: int, z: int, k: int, extra: bool = False) -> int:
+    """The number of observation columns before the ego features for G GEs, N/R/Z zones and K
+    OUs, with or without the extra features."""
+    return 5 * (g + n + r + z + k) + 14 + (6 if extra else 0)
+
+
+def _obs_impl(
+    ge_pos: Tensor, ge_remaining: Tensor, ge_mask: Tensor, nfz: Tensor, nfz_mask: Tensor, rz: Tensor,
+    rz_mask: Tensor, bz: Tensor, bz_mask: Tensor, ou_pos: Tensor, ou_vel: Tensor, ou_mask: Tensor,
+    position: Tensor, velocity: Tensor, energy_left: Tensor, slot_data: Tensor, takeoff: Tensor,
+    landing: Tensor, d_bz: Tensor, d_nfz: Tensor, d_rz: Tensor, d_boundary: Tensor, d_la: Tensor,
+    divisor: Tensor, perception_radius: float, extra: bool, distance_scale: float,
+) -> Tensor:
+    """``world.ObservationLayout.build``'s columns before the ego features (with the extra ones
+    if ``extra``; the ``d_*`` are read only then) on CPU float32:
+    ``[B, obs_width(G, N, R, Z, K, extra)]``, column j divided by ``divisor[j]``."""
+    lib = _STATE["lib"]
+    if lib is None:
+        raise RuntimeError("ckernels.obs_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
+    args = (ge_pos, ge_remaining, ge_mask, nfz, nfz_mask, rz, rz_mask, bz, bz_mask, ou_pos, ou_vel, ou_mask,
+            position, velocity, energy_left, slot_data, takeoff, landing, d_bz, d_nfz, d_rz, d_boundary, d_la)
+    sizes = {"B": position.shape[0] if position.dim() else -1, "G": ge_mask.shape[-1], "N": nfz_mask.shape[-1],
+             "R": rz_mask.shape[-1], "Z": bz_mask.shape[-1], "K": ou_mask.shape[-1], "2": 2, "4": 4}
+    for (name, dtype, dims), x in zip(OBS_INPUTS, args):
+        shape = tuple(sizes[c] for c in dims)
+        if x.device.type != "cpu" or x.dtype != dtype or tuple(x.shape) != shape:
+            raise ValueError(f"obs_cpu: {name} must be a CPU {dtype} tensor of shape {list(shape)} "
+                             f"(B, G, N, R, Z, K = {[sizes[c] for c in 'BGNRZK']}), got {x.device.type} {x.dtype} {list(x.shape)}")
+    b, counts = sizes["B"], [sizes[c] for c in "GNRZK"]
+    width = obs_width(*counts, extra)
+    if divisor.device.type != "cpu" or divisor.dtype != torch.float32 or tuple(divisor.shape) != (width,):
+        raise ValueError(f"obs_cpu: divisor must be a CPU float32 tensor of shape [{width}], "
+                         f"got {divisor.device.type} {divisor.dtype} {list(divisor.shape)}")
+    c = [x.contiguous() for x in (*args, divisor)]
+    out = torch.empty(b, width)
+    ptr = [x.data_ptr() for x in c]
+    lib.uavlae_obs(b, *counts, _threads(b), *ptr[:18], perception_radius, int(extra), *ptr[18:23], distance_scale,
+                   ptr[23], out.data_ptr())
+    return out
+
+
+def _obs_fake(ge_pos, ge_remaining, ge_mask, nfz, nfz_mask, rz, rz_mask, bz, bz_mask, ou_pos, ou_vel, ou_mask,
+              position, velocity, energy_left, slot_data, takeoff, landing, d_bz, d_nfz, d_rz, d_boundary, d_la,
+              divisor, perception_radius, extra, distance_scale):
+    counts = [m.shape[-1] for m in (ge_mask, nfz_mask, rz_mask, bz_mask, ou_mask)]
+    return position.new_empty(position.shape[0], obs_width(*counts, extra))
+
+
 def _register():
     if _STATE["ops"] is None:
         ou = torch.library.custom_op(f"uavlae::ou_step_cpu_{_KEY}", _ou_step_impl, mutates_args=())
         ou.register_fake(_ou_step_fake)
         serve = torch.library.custom_op(f"uavlae::serve_cpu_{_KEY}", _serve_impl, mutates_args=())
         serve.register_fake(_serve_fake)
-        _STATE["ops"] = (ou, serve)
+        obs = torch.library.custom_op(f"uavlae::obs_cpu_{_KEY}", _obs_impl, mutates_args=())
+        obs.register_fake(_obs_fake)
+        _STATE["ops"] = (ou, serve, obs)
     return _STATE["ops"]
 
 
-ou_step_cpu, serve_cpu = _register()
+ou_step_cpu, serve_cpu, obs_cpu = _register()
