@@ -50,7 +50,7 @@ bench-env: $(STAMP)
 
 # This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
 .PHONY: bench-env-ab
-AB_BASE ?= 51098f4
+AB_BASE ?= eedaaf6
 bench-env-ab: $(STAMP)
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \

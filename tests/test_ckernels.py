@@ -462,5 +462,5 @@ def test_obs_bad_input_names_the_tensor():
     with pytest.raises(ValueError, match=r"ou_mask must be a CPU torch.bool tensor of shape \[2, 3\]"):
         ckernels.obs_cpu(*x.values(), torch.ones(55), 30.0, True, 50.0)
     x = _obs_row_inputs()
-    with pytest.raises(ValueError, match=r"divisor must be a CPU float32 tensor of shape \[49\]"):
+    with pytest.raises(ValueError, match=r"divisor must be a CPU torch.float32 tensor of shape \[49\]"):
         ckernels.obs_cpu(*x.values(), torch.ones(55), 30.0, False, 50.0)

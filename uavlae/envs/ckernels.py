@@ -39,6 +39,7 @@ compiled step. It gives Inductor's numbers bit for bit.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import math
 import os
@@ -647,6 +648,15 @@ def _threads(rows: int, per_thread: int = _MIN_ROWS_PER_THREAD) -> int:
     return max(1, min(torch.get_num_threads(), rows // per_thread))
 
 
+def _require(op: str, specs) -> None:
+    """Raises a ValueError naming the first ``(name, tensor, dtype, shape)`` of ``specs`` whose
+    tensor is not a CPU tensor of that dtype and shape (the custom ops' check of their inputs)."""
+    for name, x, dtype, shape in specs:
+        if not (x.is_cpu and x.dtype == dtype and x.shape == shape):
+            raise ValueError(f"{op}: {name} must be a CPU {dtype} tensor of shape {list(shape)}, "
+                             f"got {x.device.type} {x.dtype} {list(x.shape)}")
+
+
 def _cpu_tensors(*specs: tuple[Tensor, torch.dtype, int]) -> bool:
     """Whether the kernels are loaded and every ``(tensor, dtype, dim)`` is a CPU tensor of that
     dtype and number of dimensions: the inputs the C functions take (else: the torch code)."""
@@ -742,7 +752,7 @@ def _ou_step_impl(
     for name, x in args.items():
         want = torch.float32 if name in _F32 else torch.bool
         dim = _F32.get(name) or _BOOL[name]
-        if x.device.type != "cpu" or x.dtype != want or x.dim() != dim:
+        if not x.is_cpu or x.dtype != want or x.dim() != dim:
             raise ValueError(f"ou_step_cpu: {name} must be a {dim}-d CPU {want} tensor, got {x.dim()}-d {x.device.type} {x.dtype}")
     b, k = mask.shape
     z, t = blocked.shape[1], retry_heading.shape[0]
@@ -776,14 +786,11 @@ def _serve_impl(
     if lib is None:
         raise RuntimeError("ckernels.serve_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
     b, g = mask.shape
-    want = {"p": (p, torch.float32, (b, 2)), "ge_pos": (ge_pos, torch.float32, (b, g, 2)),
-            "remaining": (remaining, torch.float32, (b, g)), "mask": (mask, torch.bool, (b, g)),
-            "tie_noise": (tie_noise, torch.float32, (b, g))}
-    for name, (x, dtype, shape) in want.items():
-        if x.device.type != "cpu" or x.dtype != dtype or tuple(x.shape) != shape:
-            raise ValueError(f"serve_cpu: {name} must be a CPU {dtype} tensor of shape {list(shape)}, "
-                             f"got {x.device.type} {x.dtype} {list(x.shape)}")
-    c = [x.contiguous() for x, _, _ in want.values()]
+    args = (p, ge_pos, remaining, mask, tie_noise)
+    _require("serve_cpu", zip(("p", "ge_pos", "remaining", "mask", "tie_noise"), args,
+                              (torch.float32, torch.float32, torch.float32, torch.bool, torch.float32),
+                              ((b, 2), (b, g, 2), (b, g), (b, g), (b, g))))
+    c = [x.contiguous() for x in args]
     td, served, rem = torch.empty(b), torch.empty(b, dtype=torch.int64), torch.empty(b, g)
     outs = [td, served, rem]
 
@@ -817,6 +824,13 @@ def obs_width(g: int, n: int, r: int, z: int, k: int, extra: bool = False) -> in
     return 5 * (g + n + r + z + k) + 14 + (6 if extra else 0)
 
 
+@functools.lru_cache(maxsize=16)
+def _obs_shapes(b: int, counts: tuple[int, ...], width: int) -> tuple[tuple[int, ...], ...]:
+    """The shapes OBS_INPUTS (then the divisor) must have for B rows and (G, N, R, Z, K)."""
+    sizes = {"B": b, **dict(zip("GNRZK", counts)), "2": 2, "4": 4}
+    return (*(tuple(sizes[c] for c in dims) for _, _, dims in OBS_INPUTS), (width,))
+
+
 def _obs_impl(
     ge_pos: Tensor, ge_remaining: Tensor, ge_mask: Tensor, nfz: Tensor, nfz_mask: Tensor, rz: Tensor,
     rz_mask: Tensor, bz: Tensor, bz_mask: Tensor, ou_pos: Tensor, ou_vel: Tensor, ou_mask: Tensor,
@@ -832,18 +846,11 @@ def _obs_impl(
         raise RuntimeError("ckernels.obs_cpu needs the C kernel: call uavlae.envs.ckernels.load() first")
     args = (ge_pos, ge_remaining, ge_mask, nfz, nfz_mask, rz, rz_mask, bz, bz_mask, ou_pos, ou_vel, ou_mask,
             position, velocity, energy_left, slot_data, takeoff, landing, d_bz, d_nfz, d_rz, d_boundary, d_la)
-    sizes = {"B": position.shape[0] if position.dim() else -1, "G": ge_mask.shape[-1], "N": nfz_mask.shape[-1],
-             "R": rz_mask.shape[-1], "Z": bz_mask.shape[-1], "K": ou_mask.shape[-1], "2": 2, "4": 4}
-    for (name, dtype, dims), x in zip(OBS_INPUTS, args):
-        shape = tuple(sizes[c] for c in dims)
-        if x.device.type != "cpu" or x.dtype != dtype or tuple(x.shape) != shape:
-            raise ValueError(f"obs_cpu: {name} must be a CPU {dtype} tensor of shape {list(shape)} "
-                             f"(B, G, N, R, Z, K = {[sizes[c] for c in 'BGNRZK']}), got {x.device.type} {x.dtype} {list(x.shape)}")
-    b, counts = sizes["B"], [sizes[c] for c in "GNRZK"]
+    b = position.shape[0] if position.dim() else -1
+    counts = tuple(m.shape[-1] if m.dim() else -1 for m in (ge_mask, nfz_mask, rz_mask, bz_mask, ou_mask))
     width = obs_width(*counts, extra)
-    if divisor.device.type != "cpu" or divisor.dtype != torch.float32 or tuple(divisor.shape) != (width,):
-        raise ValueError(f"obs_cpu: divisor must be a CPU float32 tensor of shape [{width}], "
-                         f"got {divisor.device.type} {divisor.dtype} {list(divisor.shape)}")
+    _require("obs_cpu", zip((*(n for n, _, _ in OBS_INPUTS), "divisor"), (*args, divisor),
+                            (*(d for _, d, _ in OBS_INPUTS), torch.float32), _obs_shapes(b, counts, width)))
     c = [x.contiguous() for x in (*args, divisor)]
     out = torch.empty(b, width)
     ptr = [x.data_ptr() for x in c]
