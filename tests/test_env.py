@@ -169,3 +169,39 @@ def test_maybe_reset_of_a_deeper_root_takes_the_generic_path():
     out = env.maybe_reset(root)
     assert out["extra", "deep", "x"].sum(-1).tolist() == [0.0, 3.0, 3.0, 3.0]
     assert out["state", "step"].tolist() == [0, 1, 1, 1]
+
+
+def _same_entries(a, b, path=""):
+    """The same keys in the same order, batch sizes, devices, and the very same tensors."""
+    assert type(a) is type(b) and list(a.keys()) == list(b.keys()), path
+    assert a.batch_size == b.batch_size and a.device == b.device, path
+    for k in a.keys():
+        x, y = a.get(k), b.get(k)
+        if isinstance(x, torch.Tensor):
+            assert x is y, f"{path}/{k}"
+        else:
+            _same_entries(x, y, f"{path}/{k}")
+
+
+def test_flat_step_mdp_gives_torchrl_s_root():
+    """UAVEnv._step_mdp (the root for the next step, without TorchRL's per-entry dispatch) gives
+    what TorchRL's generic _StepMDP gives: the same tensors under the same keys, the policy's own
+    entries kept (a nested one too, and an extra leaf in "state"), "next", the reward and
+    "_reset" dropped; a root it does not handle (a lazy stack) goes to the generic object."""
+    from tensordict import LazyStackedTensorDict, TensorDict
+
+    env = UAVEnv(batch_size=[3], seed=0)
+    flat = env._step_mdp
+    assert flat is env._step_mdp and flat.flat  # built once; the env's key trees are two levels deep
+    td = env.reset().set("action", torch.zeros(3, 2)).set("loc", torch.ones(3, 2))
+    td["policy"] = TensorDict({"h": torch.zeros(3, 4)}, batch_size=[3])
+    td["state", "extra_leaf"] = torch.arange(3.0)
+    td["_reset"] = torch.zeros(3, 1, dtype=torch.bool)
+    out = env.step(td)
+    root = flat(out)
+    _same_entries(root, flat.generic(out))
+    assert "next" not in root.keys() and "reward" not in root.keys() and "_reset" not in root.keys()
+    assert root["state", "position"] is out["next", "state", "position"] and root["loc"] is out["loc"]
+    assert root["state", "extra_leaf"] is out["state", "extra_leaf"]
+    lazy = LazyStackedTensorDict.lazy_stack([out[:2], out[2:]], 0)
+    assert flat._build(lazy) is None and type(flat(lazy)) is LazyStackedTensorDict
