@@ -205,3 +205,11 @@ def test_flat_step_mdp_gives_torchrl_s_root():
     assert root["state", "extra_leaf"] is out["state", "extra_leaf"]
     lazy = LazyStackedTensorDict.lazy_stack([out[:2], out[2:]], 0)
     assert flat._build(lazy) is None and type(flat(lazy)) is LazyStackedTensorDict
+
+
+def test_stepping_a_root_without_its_state_names_the_missing_entries():
+    env = UAVEnv(batch_size=[2], seed=0)
+    td = env.reset().set("action", torch.zeros(2, 2))
+    del td["state", "position"], td["state", "energy_used"]
+    with pytest.raises(KeyError, match=r"no \('state', key\) for \['position', 'energy_used'\]"):
+        env._step(td)

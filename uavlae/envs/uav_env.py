@@ -470,8 +470,11 @@ class UAVEnv(EnvBase):
         return out if pos is None else out[pos]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        st = tensordict.get("state")
-        state = {k: st.get(k) for k in self.raw_state_keys}
+        st = dict(tensordict.get("state").items())  # one pass: TensorDict.get costs ~1.5 us a key
+        missing = [k for k in self.raw_state_keys if k not in st]
+        if missing:
+            raise KeyError(f"UAVEnv.step: the input has no ('state', key) for {missing}: step a root that reset() or step() made")
+        state = {k: st[k] for k in self.raw_state_keys}
         action = tensordict.get("action")
         noise = draw_noise(state, self.cfg, self.rng)
         if self.compiled and self.device.type == "cpu":
