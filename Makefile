@@ -52,7 +52,7 @@ bench-env: $(STAMP)
 .PHONY: bench-env-ab
 AB_BASE ?= eedaaf6
 bench-env-ab: $(STAMP)
-	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64
+	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64 1
 	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \
 		--out benchmarks/env_ab_2threads.json
 

@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             rows = []
             for b in a.batches:
-                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, max(20, 81920 // b), clock)
+                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, max(20, min(2000, 81920 // b)), clock)
                 row["threads"], row["clock"] = a.threads, clock.__name__
                 print(json.dumps(row), flush=True)
                 rows.append(row)
