@@ -90,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
         try:
             rows = []
             for b in a.batches:
-                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, max(20, min(2000, 81920 // b)), clock)
+                calls = max(20, min(2000, 81920 // b))  # about 82k env-steps a burst, at most 2000 calls
+                row = measure({"base": base_root, "new": ROOT}, b, bool(a.compiled), a.bursts, calls, clock)
                 row["threads"], row["clock"] = a.threads, clock.__name__
                 print(json.dumps(row), flush=True)
                 rows.append(row)

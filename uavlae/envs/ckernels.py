@@ -32,8 +32,9 @@ custom ops (:data:`ou_step_cpu`, :data:`serve_cpu`, :data:`obs_cpu`) so that ``t
 calls them from inside its graph; batches below :data:`MIN_BATCH` keep the torch code.
 
 :data:`obs_cpu` writes the observation's columns (all but the ego-centric ones, which stay
-torch) one row at a time; Inductor wrote them in a loop over the batch per part, a fifth of its
-compiled step. It gives Inductor's numbers bit for bit.
+torch) one row at a time; Inductor wrote them in a loop over the batch per part. Without them
+Inductor's largest kernel took 2.3 instead of 4.5 ms, and this kernel takes about 1.2 ms (B =
+4096, one thread, scratch profiles). It gives Inductor's numbers bit for bit.
 """
 
 from __future__ import annotations

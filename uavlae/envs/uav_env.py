@@ -55,14 +55,12 @@ def _inductor_options(device: torch.device) -> dict[str, Any]:
     return {"cpp.simdlen": 8, "max_fusion_size": 8, "cpp_wrapper": True}
 
 
-_ABSENT = object()
-
-
 class _FlatStepMDP:
     """TorchRL's ``_StepMDP`` (the root for the next step) for roots of plain TensorDicts of
     tensors at most two levels deep, as this env's are: the same entries (the same tensor
     objects), batch sizes and devices, built from the same key trees of the generic object,
-    without its per-entry dispatch (0.4 of the 1.1 ms of a compiled B = 1 call went there).
+    without its per-entry dispatch: 80 instead of 455 us per call (scratch timing; the compiled
+    B = 1 call was 1.1 ms).
     Anything else (lazy stacks, non-tensor data, names, deeper nesting, or key trees of another
     shape) takes the generic object."""
 
@@ -473,7 +471,8 @@ class UAVEnv(EnvBase):
         st = dict(tensordict.get("state").items())  # one pass: TensorDict.get costs ~1.5 us a key
         missing = [k for k in self.raw_state_keys if k not in st]
         if missing:
-            raise KeyError(f"UAVEnv.step: the input has no ('state', key) for {missing}: step a root that reset() or step() made")
+            raise KeyError(f"UAVEnv.step: the input has no ('state', key) for {missing}: "
+                           "step a root that reset() or step() made")
         state = {k: st[k] for k in self.raw_state_keys}
         action = tensordict.get("action")
         noise = draw_noise(state, self.cfg, self.rng)

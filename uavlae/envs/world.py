@@ -318,6 +318,7 @@ class ObservationLayout:
         return torch.tensor(cols, dtype=torch.float64)
 
     def build(self, s: dict[str, Tensor]) -> Tensor:
+        """The normalised observation ``[B, size]`` of the raw state ``s`` (SPEC §6)."""
         p = s["position"]
         div = self._divisor.to(device=p.device, dtype=p.dtype)
         if self.c_kernel and ckernels.applies(p):
