@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     from uavlae.envs.config import EnvConfig
     from uavlae.envs.scenario import sample_scenarios
     from uavlae.machine import describe_machine
+    from uavlae.factories import dump_json
 
     if not ckernels.load():
         raise SystemExit("the C kernels could not be built (see the warning): nothing to compare")
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
     out = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
            "command": "python benchmarks/ckernels_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "rows": rows}
-    Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
+    dump_json(Path(a.out), out)
 
 
 if __name__ == "__main__":

@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(a.threads)
     clock = time.process_time if a.threads == 1 else time.perf_counter
     from uavlae.machine import describe_machine
+    from uavlae.factories import dump_json
 
     rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", a.base], check=True, capture_output=True, text=True).stdout.strip()
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], check=True, capture_output=True, text=True).stdout.strip()
@@ -100,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
     out = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
            "command": "python benchmarks/env_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "base": rev, "new": head, "rows": rows}
-    Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
+    dump_json(Path(a.out), out)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ sampled with seed 999 (episodes that stall, neither landing nor crashing, are co
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -30,6 +29,8 @@ def main() -> None:
     from time_to_target import env_config
 
     from uavlae.machine import describe_machine
+
+    from uavlae.factories import dump_json
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import Evaluator
 
@@ -72,7 +73,7 @@ def main() -> None:
     initial_state(pool, cfg)
     out["geodesic_fields_ms_per_scenario_at_256"] = round((time.perf_counter() - t) / 256 * 1e3, 2)
     print("geodesic fields:", out["geodesic_fields_ms_per_scenario_at_256"], "ms per scenario (256 at once)")
-    (ROOT / "benchmarks" / "follow_direction.json").write_text(json.dumps(out, indent=1) + "\n")
+    dump_json(ROOT / "benchmarks" / "follow_direction.json", out)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ sys.path.insert(0, str(ROOT))
 from uavlae.llm import LLMAdvisor, WorldLimits, example_states, make_llm_config  # noqa: E402
 from uavlae.llm.server import local_server  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
+from uavlae.factories import dump_json  # noqa: E402
 
 
 
@@ -86,7 +87,7 @@ def main() -> None:
         "machine": mach, "results": rows,
         "min_cache_vs_server_cost_ratio": ratio, "cache_ratio_target": 1000, "cache_ratio_met": ratio >= 1000,
     }
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    dump_json(Path(args.out), out)
     print(f"cache vs server cost ratio (min over batch sizes): {ratio:.0f}x (target >= 1000x)")
     print(f"wrote {args.out}")
     if ratio < 1000:

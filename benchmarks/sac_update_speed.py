@@ -59,6 +59,7 @@ from torchrl.data import Bounded  # noqa: E402
 from uavlae.algos.common import to_floats  # noqa: E402
 from uavlae.algos.sac import make_sac  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
+from uavlae.factories import dump_json  # noqa: E402
 
 TARGET_UPS = 300.0
 
@@ -281,7 +282,7 @@ def main() -> None:
         "load_average_1_5_15": {"before": [round(x, 2) for x in load_before], "after": [round(x, 2) for x in os.getloadavg()]},
         "measured_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    dump_json(Path(args.out), result)
     keys = ("updates_per_s_median", "updates_per_s_best_round", "ratio_to_reference_paired_median", "compile")
     print(json.dumps({k: result[k] for k in keys}, indent=2))
     print(f"written to {args.out}")

@@ -26,7 +26,6 @@ absolute figures mean little; the ratio measured in this one run is the result (
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import torch
 from uavlae.machine import describe_machine  # noqa: E402
+from uavlae.factories import dump_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = {"DCR": (">=", 0.9), "CR": ("<=", 0.1), "SLR": (">=", 0.9)}
@@ -303,7 +303,7 @@ def main(argv: list[str] | None = None) -> None:
     for m in a.methods:
         print(f"== {m} (cap {a.cap_minutes:g} min)", flush=True)
         result["methods"][m] = run_ours(a, eval_set, work / "ours") if m == "uavlae_sac" else run_sb3(a, eval_set)
-        Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
+        dump_json(Path(a.out), result)
     ms = result["methods"]
     if "uavlae_sac" in ms and "sb3_sac" in ms:
         o, s = ms["uavlae_sac"], ms["sb3_sac"]
@@ -317,7 +317,7 @@ def main(argv: list[str] | None = None) -> None:
               + ", ".join(f"{k} {b[k]:.3f}" for k in ("DCR", "CR", "SLR") if k in b) + f" @ {b.get('frames')} frames")
     if "ratio_train_fps_ours_over_sb3" in result:
         print(f"train frames/s ratio ours / SB3: {result['ratio_train_fps_ours_over_sb3']}")
-    Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
+    dump_json(Path(a.out), result)
 
 
 if __name__ == "__main__":

@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> None:
     from uavlae.envs.gym_adapter import UAVGymEnv
     from uavlae.factories import CONF_DIR, behaviour_actor, make_env, make_learner, make_policy
     from uavlae.machine import describe_machine
+    from uavlae.factories import dump_json
     from uavlae.train import REPLAY_KEYS
 
     b, utd = a.env_batch, a.utd
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> None:
                                           "ratio_update_sb3_over_ours",
                                           "ratio_collect_sb3_over_ours", "ratio_frames_per_s_from_parts",
                                           "bound_if_only_our_updates_cost")}, indent=1))
-    Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
+    dump_json(Path(a.out), out)
 
 
 if __name__ == "__main__":
