@@ -617,11 +617,17 @@ def _mt_self_check() -> bool:
     return True
 
 
+def _mt_on(generator: torch.Generator, n: int) -> bool:
+    """Whether the C replay draws ``n`` numbers from ``generator``: loaded and checked against
+    torch.rand (:func:`load`), a CPU generator, and at least :data:`MT_MIN_DRAWS` numbers."""
+    return _STATE["mt"] and _STATE["lib"] is not None and generator.device.type == "cpu" and n >= MT_MIN_DRAWS
+
+
 def uniform(generator: torch.Generator, n: int) -> Tensor:
     """``torch.rand(n, generator=generator)``: the same float32 numbers, and the generator left in
     the same state, drawn several times faster by the C replay of ATen's mt19937 when
     :func:`load` succeeded and checked it (``generator`` on CPU); else torch.rand itself."""
-    if _STATE["mt"] and _STATE["lib"] is not None and generator.device.type == "cpu" and n >= MT_MIN_DRAWS:
+    if _mt_on(generator, n):
         out = _mt_uniform(generator, n)
         if out is not None:
             return out
@@ -635,8 +641,7 @@ def uniform_runs(generator: torch.Generator, runs: list[tuple[torch.Size, str, f
     applying the op, written by one C pass with no intermediate; ``None`` (do that) unless the
     replay is on (:func:`uniform`), the generator is on the CPU and the runs hold at least
     :data:`MT_MIN_DRAWS` numbers."""
-    total = sum(math.prod(shape) for shape, _, _ in runs)
-    if not (_STATE["mt"] and _STATE["lib"] is not None and generator.device.type == "cpu" and total >= MT_MIN_DRAWS):
+    if not _mt_on(generator, sum(math.prod(shape) for shape, _, _ in runs)):
         return None
     return _mt_runs(generator, runs)
 
@@ -662,7 +667,7 @@ def _cpu_tensors(*specs: tuple[Tensor, torch.dtype, int]) -> bool:
     """Whether the kernels are loaded and every ``(tensor, dtype, dim)`` is a CPU tensor of that
     dtype and number of dimensions: the inputs the C functions take (else: the torch code)."""
     return _STATE["lib"] is not None and all(
-        t.device.type == "cpu" and t.dtype == dtype and t.dim() == dim for t, dtype, dim in specs
+        t.is_cpu and t.dtype == dtype and t.dim() == dim for t, dtype, dim in specs
     )
 
 
