@@ -63,7 +63,6 @@ def _loop(env, td, actions, calls: int, done: list | None = None) -> tuple[float
 def breakdown(batch: int, calls: int, threads: int, seed: int = 0) -> dict:
     import uavlae.envs.uav_env as ue
     from uavlae.envs import UAVEnv
-    from uavlae.envs.world import draw_noise
 
     torch.set_num_threads(threads)
     env = UAVEnv(batch_size=[batch], seed=seed, compile_step=True)
@@ -111,11 +110,7 @@ def breakdown(batch: int, calls: int, threads: int, seed: int = 0) -> dict:
     # done rows, so the resets cost what they cost above), stored and handed back every call
     best = None
     for i in range(200):
-        state = {k: td["state"][k] for k in env.raw_state_keys}
-        noise = draw_noise(state, env.cfg, env.rng)
-        if env.compiled:
-            noise["heading_cos"], noise["heading_sin"] = torch.cos(noise["heading"]), torch.sin(noise["heading"])
-        out = core(state, td["action"], noise)
+        out = core(*env._core_inputs(td))
         gap = abs(int(out[5][0].sum()) - round(mean_done))
         if best is None or gap < best[0]:
             best = (gap, out)

@@ -468,6 +468,12 @@ class UAVEnv(EnvBase):
         return out if pos is None else out[pos]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        nxt, events, terms, cost, reward, flags, obs = self._core(*self._core_inputs(tensordict))
+        return self._output(nxt, events, terms, cost, reward, flags, obs)
+
+    def _core_inputs(self, tensordict: TensorDictBase) -> tuple[dict, torch.Tensor, dict]:
+        """What the step's core takes for this root: its raw state, its action and the slot's
+        random draws (which advance the env's generator)."""
         st = dict(tensordict.get("state").items())  # one pass: TensorDict.get costs ~1.5 us a key
         missing = [k for k in self.raw_state_keys if k not in st]
         if missing:
@@ -480,5 +486,4 @@ class UAVEnv(EnvBase):
             # ATen's vectorised cos/sin of the [B, K] new headings (0.04 ms at B = 4096), not the
             # compiled step's scalar ones (0.46 ms): the step's C++ is scalar (_inductor_options)
             noise["heading_cos"], noise["heading_sin"] = torch.cos(noise["heading"]), torch.sin(noise["heading"])
-        nxt, events, terms, cost, reward, flags, obs = self._core(state, action, noise)
-        return self._output(nxt, events, terms, cost, reward, flags, obs)
+        return state, action, noise
