@@ -298,3 +298,154 @@ def test_heuristic_advisor_on_env_rows():
     assert out["action_source"].tolist() == [HEURISTIC] * 3
     torch.testing.assert_close(out["action"], h.act(td["state"]))
     assert out["action"].abs().max() <= 1
+
+
+# ---------------------------------------------------------------------------- fewer calls
+
+
+class CountingAdvisor:
+    """Answers action = (k / 10, row / 10) on its k-th call (k = 1, 2, ...): a held answer is
+    told from a fresh one by its first column. ``fail_rows`` fail on every call."""
+
+    source = LLM
+
+    def __init__(self, fail_rows=()):
+        self.fail_rows = set(fail_rows)
+        self.rows = []
+
+    def advise(self, td_rows, rows):
+        self.rows.append(rows.tolist())
+        k = len(self.rows)
+        actions = torch.stack([torch.full((rows.numel(),), k / 10), rows.float() / 10], dim=-1)
+        return actions, torch.tensor([int(r) not in self.fail_rows for r in rows], dtype=torch.bool)
+
+
+def stepped(d, step):
+    """``batch(**d)`` with the episode's slot ``("state", "step")`` of every row."""
+    td = batch(**d)
+    td["state", "step"] = torch.as_tensor(step, dtype=torch.int64)
+    return td
+
+
+NEAR, FAR = 3.0, INF
+
+
+def rows_d(near):
+    """Four rows, row i triggered (a BZ at 3 m) where ``near[i]``."""
+    d = [NEAR if n else FAR for n in near]
+    return dict(d_bz=d, d_nfz=[FAR] * 4, d_rz=[FAR] * 4, d_ou=[FAR] * 4)
+
+
+def test_hold_steps_executes_an_answer_k_slots_while_the_row_stays_triggered():
+    adv = CountingAdvisor(fail_rows={3})
+    pol = OverridePolicy(const_actor(), adv, hold_steps=3)
+    # row 0: triggered throughout; row 1: leaves the trigger at slot 2; row 2: a new episode at
+    # slot 2 (its step goes back to 0); row 3: its answers fail, so it asks every slot
+    plan = [
+        ([1, 1, 1, 1], [0, 0, 0, 0]),
+        ([1, 1, 1, 1], [1, 1, 1, 1]),
+        ([1, 0, 1, 1], [2, 2, 0, 2]),
+        ([1, 1, 1, 1], [3, 3, 1, 3]),
+        ([1, 1, 1, 1], [4, 4, 2, 4]),
+    ]
+    actions, sources = [], []
+    for near, step in plan:
+        out = pol(stepped(rows_d(near), step))
+        actions.append(out["action"][:, 0].tolist())
+        sources.append(out["action_source"].tolist())
+    # who was asked at each call: slot 0 all; slot 1 the failed row; slot 2 the new episode and the
+    # failed row; slot 3 row 0 (its 3 slots are used), row 1 (back in the trigger) and row 3
+    assert adv.rows == [[0, 1, 2, 3], [3], [2, 3], [0, 1, 3], [3]]
+    # column 0 = the call that answered: row 0 runs call 1 for 3 slots, then call 4 (the 4th call)
+    assert [a[0] for a in actions] == pytest.approx([0.1, 0.1, 0.1, 0.4, 0.4])
+    assert [a[1] for a in actions] == pytest.approx([0.1, 0.1, 0.25, 0.4, 0.4])  # slot 2: the actor's 0.25
+    assert [a[2] for a in actions] == pytest.approx([0.1, 0.1, 0.3, 0.3, 0.3])
+    assert [s[3] for s in sources] == [FALLBACK] * 5
+    assert [s[1] for s in sources] == [LLM, LLM, POLICY, LLM, LLM]
+    s = pol.snapshot()
+    # 19 triggered rows: 11 asked (4 + 1 + 2 + 3 + 1), the other 8 executed a held answer
+    assert s["triggered"] == 19 and s["advised"] == 11 and s["held"] == 8
+    assert s["source/llm"] == 14 and s["source/fallback"] == 5 and s["hold_steps"] == 3
+
+
+def test_hold_steps_one_asks_every_slot():
+    adv = CountingAdvisor()
+    pol = OverridePolicy(const_actor(), adv)
+    for step in range(3):
+        pol(stepped(rows_d([1, 1, 0, 0]), [step] * 4))
+    assert adv.rows == [[0, 1]] * 3 and pol.snapshot()["held"] == 0
+
+
+def test_max_calls_is_a_budget_of_rows_then_the_actor_acts():
+    adv = CountingAdvisor()
+    pol = OverridePolicy(const_actor(), adv, max_calls=5)
+    outs = [pol(stepped(rows_d([1, 1, 1, 1]), [t] * 4)) for t in range(3)]
+    assert adv.rows == [[0, 1, 2, 3], [0]]  # the 5th row is the first triggered one in batch order
+    assert outs[1]["action_source"].tolist() == [LLM, POLICY, POLICY, POLICY]
+    assert outs[1]["action"][1].tolist() == [0.25, -0.25]  # the actor's action
+    assert outs[2]["action_source"].tolist() == [POLICY] * 4
+    s = pol.snapshot()
+    assert s["advised"] == 5 and s["calls_used"] == 5 and s["max_calls"] == 5
+    assert s["budget_skipped"] == 7 and s["triggered"] == 12
+    # zero: never asked
+    adv0 = CountingAdvisor()
+    assert OverridePolicy(const_actor(), adv0, max_calls=0)(stepped(rows_d([1] * 4), [0] * 4))["action_source"].tolist() == [POLICY] * 4
+    assert adv0.rows == []
+
+
+def test_held_answers_and_the_budget_survive_a_checkpoint():
+    def make():
+        return OverridePolicy(const_actor(), CountingAdvisor(), hold_steps=3, max_calls=6)
+
+    a = make()
+    a(stepped(rows_d([1, 1, 0, 0]), [0] * 4))
+    sd = a.state_dict()
+    b = make()
+    b.load_state_dict(sd)
+    # slot 1: rows 0 and 1 run their held answers (no call), rows 2 and 3 ask (4 of 6 rows used)
+    outs = [p(stepped(rows_d([1, 1, 1, 1]), [1] * 4)) for p in (a, b)]
+    torch.testing.assert_close(outs[0]["action"][:2], outs[1]["action"][:2])
+    assert b.advisor.rows == [[2, 3]] and b.calls_used == 4
+    assert b.snapshot()["held"] == 2 and b.run_totals()["triggered"] == 6
+
+
+def test_bad_hold_and_budget_settings_are_errors():
+    with pytest.raises(ValueError, match="hold_steps"):
+        OverridePolicy(const_actor(), CountingAdvisor(), hold_steps=0)
+    with pytest.raises(ValueError, match="max_calls"):
+        OverridePolicy(const_actor(), CountingAdvisor(), max_calls=-1)
+
+
+class DelayedAdvisor(CountingAdvisor):
+    """``start`` returns a handle at once; its answer is only computed when asked for."""
+
+    def __init__(self):
+        super().__init__()
+        self.started = []
+
+    def start(self, td_rows, rows):
+        self.started.append(rows.tolist())
+        parent = self
+
+        class Handle:
+            done_at = None
+
+            def result(self):
+                return parent.advise(td_rows, rows)
+
+        return Handle()
+
+
+def test_begin_sends_the_advice_and_the_actor_acts_in_finish():
+    adv = DelayedAdvisor()
+    actor = const_actor()
+    pol = OverridePolicy(actor, adv)
+    td = stepped(rows_d([1, 0, 0, 1]), [0] * 4)
+    pending = pol.begin(td)
+    assert adv.started == [[0, 3]] and adv.rows == [] and pending.rows.tolist() == [0, 3]
+    # what runs between the halves (the learner's updates) reaches the actor that acts
+    actor.module.forward = lambda obs: torch.full((obs.shape[0], 2), -0.5)
+    out = pol.finish(td, pending)
+    assert adv.rows == [[0, 3]]
+    assert out["action"][:, 0].tolist() == pytest.approx([0.1, -0.5, -0.5, 0.1])
+    assert out["action_source"].tolist() == [LLM, POLICY, POLICY, LLM]

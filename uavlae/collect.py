@@ -8,6 +8,14 @@ shape ``[B, T]`` (time last, as torchrl's collectors) holding what was executed:
 deliberately single-process: the LLM advisor's client, cache and local server stay in this
 process, and nothing of the policy is copied or pickled (see ``OverridePolicy.__deepcopy__``).
 
+Work of the caller's may run inside each step: ``between`` (the training loop's scheduled
+gradient steps) runs after the override policy has sent the step's advice requests and before
+the actor acts and the answers are awaited, so the updates overlap the requests in flight on the
+LLM server, and the actor that acts is the updated one; ``on_step`` receives every executed
+transition ``[B]`` (the loop extends its replay buffer with it). :attr:`UAVCollector.timing`
+sums the seconds spent in ``between`` and the part of them while requests were in flight
+(``overlap_s``: what the overlap saves against sending the requests after the updates).
+
 ``override_abort`` rows (failed advice with ``fallback="end_episode"``, paper §5.3) get
 ``("next", "truncated")`` and ``("next", "done")`` set before the partial reset, so exactly
 those episodes end there. Finished episodes are measured with
@@ -21,7 +29,9 @@ transitions; its ``state_dict()`` / ``load_state_dict()`` hold the stored data f
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+import contextlib
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -89,6 +99,11 @@ class UAVCollector:
         exploration_type: the policy acts under it (``RANDOM``: sampled actions).
         seed: seeds the random warm-up policy.
         max_episodes_per_row: passed to the episode tracker.
+        between: called once per step while the step's advice is in flight (with gradients
+            enabled; see the module docstring).
+        overlap: False calls ``between`` before the advice is sent instead (the same numbers:
+            the advisor never reads what ``between`` changes; a baseline for what the overlap buys).
+        on_step: called with every executed transition ``[B]`` (after ``keep_keys``).
     """
 
     def __init__(
@@ -104,6 +119,9 @@ class UAVCollector:
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         seed: int = 0,
         max_episodes_per_row: int | None = None,
+        between: Callable[[], Any] | None = None,
+        overlap: bool = True,
+        on_step: Callable[[TensorDictBase], Any] | None = None,
     ):
         if len(env.batch_size) != 1:
             raise ValueError(f"UAVCollector needs an env with batch_size [B], got {list(env.batch_size)}")
@@ -122,6 +140,10 @@ class UAVCollector:
         self.keep_keys = None if keep_keys is None else list(keep_keys)
         self.exploration_type = exploration_type
         self.tracker = EpisodeTracker(self.B, env.cfg, max_episodes_per_row=max_episodes_per_row, device=env.device)
+        self.between = between
+        self.overlap = bool(overlap)
+        self.on_step = on_step
+        self.timing = {"between_s": 0.0, "overlap_s": 0.0}
         self.frames = 0
         self.batches = 0
         self._td: TensorDictBase | None = None
@@ -131,19 +153,39 @@ class UAVCollector:
         self._td = self.env.reset()
         self.tracker.reset()
 
+    def _run_between(self) -> float:
+        """The caller's work; returns when it ended (time.perf_counter)."""
+        if self.between is not None:
+            t0 = time.perf_counter()
+            with torch.enable_grad():
+                self.between()
+            self.timing["between_s"] += time.perf_counter() - t0
+        return time.perf_counter()
+
     def _act(self, td: TensorDictBase) -> TensorDictBase:
         random = self.frames < self.init_random_frames
-        with set_exploration_type(self.exploration_type):
-            if random and hasattr(self.policy, "using_actor"):
-                with self.policy.using_actor(self.random_policy):
-                    td = self.policy(td)
-            elif random:
-                td = self.random_policy(td)
-            else:
-                td = self.policy(td)
-        if not hasattr(self.policy, "using_actor"):  # not an OverridePolicy: the policy acted
+        if not hasattr(self.policy, "begin"):  # not an OverridePolicy: the policy acts alone
+            self._run_between()
+            with set_exploration_type(self.exploration_type):
+                td = self.random_policy(td) if random else self.policy(td)
             td.set("action_source", torch.full((self.B,), POLICY, dtype=torch.int64, device=td.device))
             td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
+            return td
+        with contextlib.ExitStack() as stack:
+            if random:
+                stack.enter_context(self.policy.using_actor(self.random_policy))
+            if not self.overlap:
+                self._run_between()
+            with set_exploration_type(self.exploration_type):
+                pending = self.policy.begin(td)
+            if self.overlap:
+                ended = self._run_between()
+                if pending.handle is not None and self.between is not None:
+                    done = pending.done_at
+                    self.timing["overlap_s"] += max(0.0, min(ended, done if done is not None else ended)
+                                                    - pending.started_at)
+            with set_exploration_type(self.exploration_type):
+                td = self.policy.finish(td, pending)
         return td
 
     @torch.no_grad()
@@ -167,6 +209,8 @@ class UAVCollector:
         out = out.clone()
         self._td = self.env.maybe_reset(step_mdp(td, keep_other=False, exclude_action=True))
         self.frames += self.B
+        if self.on_step is not None:
+            self.on_step(out)
         return out
 
     def rollout_batch(self) -> TensorDictBase:

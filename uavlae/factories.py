@@ -81,6 +81,8 @@ class TrainerConfig(_Strict):
     progress_bar: bool
     log_every_batches: int = Field(ge=1)
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
+    overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
+    baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
 
     @model_validator(mode="after")
     def _divisible(self) -> "TrainerConfig":
@@ -100,6 +102,8 @@ class AdvisorConfig(_Strict):
     d_th: float = Field(ge=0)  # m
     fp: float = Field(ge=0, le=1)
     fallback: Literal["policy", "heuristic", "end_episode"]
+    hold_steps: int = Field(1, ge=1)  # slots a valid answer is executed while its row stays triggered
+    max_calls: int | None = Field(None, ge=0)  # rows asked of the advisor in the run; None: no budget
 
     @model_validator(mode="after")
     def _consistent(self) -> "AdvisorConfig":
@@ -267,6 +271,8 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         fallback=adv.fallback,
         heuristic=heuristic,
         seed=int(cfg.seed if seed is None else seed),
+        hold_steps=adv.hold_steps,
+        max_calls=adv.max_calls,
     )
 
 

@@ -3,11 +3,20 @@
 The loop, top to bottom (every number in ``conf/``)::
 
     for batch in collector:                      # [B, T] executed transitions, step = env frames
-        off-policy (sac, ddpg): replay.extend(batch); utd_ratio * frames gradient steps
+        off-policy (sac, ddpg), inside every env step of the batch (OffPolicyUpdates):
+            the triggered rows' advice is sent; the gradient steps owed so far run while it is
+            in flight; the (updated) actor acts; the answers are merged; the env steps;
+            replay.extend(transition); utd_ratio * B gradient steps owed once past the warm-up
         on-policy (ppo, cpo):   learner.update(batch)
         log train metrics, episode metrics, override / LLM counters, fps
         every eval_every_frames:       evaluate the deterministic actor on the fixed set
         every checkpoint_every_frames: atomic checkpoint (exact resume at this batch boundary)
+    at the end: the owed gradient steps, a final evaluation, the heuristic and a random policy
+    on the same set (``trainer.baselines``), final_metrics.json and a summary for the reader
+
+Every off-policy method gets the same schedule (``sac`` and ``sac_llm`` differ only in who
+acts), and it does not depend on when the answers arrive: with ``llm.cache_mode=replay_only``
+a run replays exactly, and ``trainer.overlap_advice=false`` gives the same numbers.
 
 ``run(cfg)`` is importable (the tests call it in-process) and returns the final metrics.
 ``resume=RUN_DIR_OR_CHECKPOINT`` continues a run: same config, frames, RNG states, replay
@@ -29,7 +38,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from uavlae.algos import OFF_POLICY
-from uavlae.checkpoint import load_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state
+from uavlae.checkpoint import (
+    load_checkpoint, resolve_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state,
+)
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
@@ -97,6 +108,153 @@ def _prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+class OffPolicyUpdates:
+    """The off-policy schedule, per env step: each step's ``B`` transitions go to the replay
+    buffer and, once ``frames >= init_random_frames`` and the buffer holds a sample, owe
+    ``utd_ratio * B`` gradient steps (fractions carried in ``counters["utd_debt"]``), which run
+    at the next env step while its advice is in flight (:class:`uavlae.collect.UAVCollector`'s
+    ``between``); :meth:`flush` pays what is left at the end of training."""
+
+    def __init__(self, learner: Any, replay: Any, tr: Any, counters: dict[str, Any]):
+        self.learner, self.replay, self.tr, self.counters = learner, replay, tr, counters
+        self.logs: dict[str, float] = {}
+
+    def add(self, transition: Any) -> None:
+        """The collector's ``on_step``: store the step, count what it owes."""
+        self.replay.extend(transition.select(*REPLAY_KEYS, strict=False).reshape(-1))
+        frames = self.counters["frames"] + transition.batch_size[0]
+        self.counters["frames"] = frames
+        if frames >= self.tr.init_random_frames and len(self.replay) >= self.tr.batch_size:
+            self.counters["utd_debt"] += self.tr.utd_ratio * transition.batch_size[0]
+
+    def run(self) -> None:
+        """The collector's ``between``: the gradient steps owed so far."""
+        n = int(self.counters["utd_debt"])
+        self.counters["utd_debt"] -= n
+        for _ in range(n):
+            self.logs = self.learner.update(self.replay.sample())
+        self.counters["updates"] += n
+
+    def flush(self) -> None:
+        with torch.enable_grad():
+            self.run()
+
+
+# What the closing summary says of each paper metric (SPEC.md §5).
+METRIC_MEANINGS = {
+    "DCR": "data collected / data there, higher is better",
+    "CR": "episodes with a collision, lower is better",
+    "SLR": "episodes that landed, higher is better",
+    "RVR": "episodes speeding in a residential zone, lower is better",
+    "ECR": "energy used / energy limit, lower is better",
+}
+
+
+def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
+    """The override's run counters that a replay reproduces: no timings, none of the
+    advisor's transport counts (a replayed answer is a cache hit, a live one a call)."""
+    return {k: v for k, v in totals.items() if not k.startswith("advisor/") and not k.endswith("_s")}
+
+
+def _baselines(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, run_dir: Path) -> dict[str, float]:
+    """The greedy heuristic and a uniform-random policy on the same evaluation set."""
+    from uavlae.collect import _UniformRandom
+    from uavlae.factories import make_heuristic
+
+    generator = torch.Generator()
+    generator.manual_seed(int(cfg.trainer.eval_seed))
+    policies = {"heuristic": make_heuristic(cfg, env_cfg), "random": _UniformRandom(evaluator.env.action_spec, generator)}
+    out: dict[str, float] = {}
+    for name, policy in policies.items():
+        agg = evaluator.run(policy, run_dir / "eval" / f"baseline_{name}", title=name)
+        out.update(_prefixed(f"baseline/{name}", agg))
+    return out
+
+
+def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
+    path = run_dir / "summary.json"
+    dump_json(path, summary)
+    return path
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """The closing print of a run, for a reader who has not seen the code."""
+    lines = []
+    name, frames = summary["name"], int(summary["frames"])
+    if summary.get("controller", "learner") == "learner":
+        full = int(summary["full_run_frames"])
+        fps = summary.get("fps")
+        lines.append(
+            f"{name}: trained {frames:,} environment frames ({100 * frames / full:.1f}% of a full run's {full:,}; "
+            f"`make run RUN_ARGS=` trains all of it) with {int(summary['updates']):,} gradient steps"
+            + (f", {summary['train_s']:.0f} s at {fps:.1f} frames/s" if fps else "") + "."
+        )
+    else:
+        lines.append(f"{name}: evaluated (no training).")
+    rows = summary["metrics"]
+    n_eps = summary.get("eval_episodes")
+    lines.append("")
+    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; "
+                 "the trained actor flies alone, deterministically):")
+    width = max(len(k) for k in rows) + 2
+    lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))
+    for who, agg in rows.items():
+        lines.append(f"{who:<{width}}" + "".join(f"{agg.get(k, float('nan')):8.3f}" for k in PAPER_METRICS))
+    lines.extend(f"  {k}: {v}" for k, v in METRIC_MEANINGS.items())
+    ov = summary.get("override")
+    if ov:
+        kind = summary.get("advisor_kind", "advisor")
+        f_ = max(int(ov.get("frames", 0)), 1)
+        lines.append("")
+        lines.append(
+            f"Advisor ({kind}): triggered on {int(ov['triggered']):,} of {int(ov['frames']):,} frames "
+            f"({100 * ov['triggered'] / f_:.1f}%); {int(ov.get('advised', 0)):,} rows asked, "
+            f"{int(ov.get('held', 0)):,} executed a held answer (hold_steps={int(ov.get('hold_steps', 1))}), "
+            f"{int(ov.get('budget_skipped', 0)):,} left to the actor by the call budget"
+            + (f" (max_calls={int(ov['max_calls'])})" if ov.get("max_calls", -1) >= 0 else "") + "; "
+            f"{int(ov.get('source/fallback', 0)):,} failed answers."
+        )
+        calls = ov.get("advisor/calls")
+        if calls is not None:
+            n = max(float(calls), 1.0)
+            lines.append(
+                f"  LLM: {int(calls):,} HTTP calls ({1000 * calls / f_:.1f} per 1000 frames), "
+                f"{int(ov.get('advisor/cache_hits', 0)):,} cache hits; per call p50 {ov.get('advisor/latency_p50_s', float('nan')):.2f} s, "
+                f"p95 {ov.get('advisor/latency_p95_s', float('nan')):.2f} s, "
+                f"{ov.get('advisor/prompt_tokens', 0) / n:.0f} prompt + {ov.get('advisor/completion_tokens', 0) / n:.0f} "
+                f"completion tokens; the loop waited {ov.get('advice_wait_s', 0.0):.1f} s for answers"
+                + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
+                   if summary.get("overlap_s") else "") + "."
+            )
+    lines.append("")
+    for pic in summary.get("pictures", []):
+        lines.append(f"Pictures: {pic}")
+    lines.append(f"All numbers: {summary['run_dir']}/final_metrics.json and summary.json; "
+                 f"curves: {summary['run_dir']}/logs/scalars/")
+    return "\n".join(lines)
+
+
+def _pictures(run_dir: Path, frames: int) -> list[str]:
+    out = []
+    for d in (_eval_out(run_dir, frames), run_dir / "eval" / "baseline_heuristic", run_dir / "eval" / "baseline_random"):
+        if any(d.glob("trajectory_*.png")):
+            out.append(str(d / "trajectory_*.png"))
+    return out
+
+
+def _baseline_rows(final: dict[str, Any]) -> dict[str, dict[str, float]]:
+    rows: dict[str, dict[str, float]] = {}
+    for key, v in final.items():
+        if key.startswith("baseline/"):
+            _, who, metric = key.split("/", 2)
+            rows.setdefault(who, {})[metric] = v
+    return {("uniform random" if who == "random" else who): agg for who, agg in rows.items()}
+
+
+def _full_run_frames() -> int:
+    return int(OmegaConf.load(CONF_DIR / "trainer" / "default.yaml").total_frames)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train (or evaluate a controller) as ``cfg`` says; returns the final metrics."""
     cfg, ckpt = _prepare(cfg)
@@ -142,6 +300,7 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
     t0 = time.perf_counter()
     try:
         agg = evaluator.run(controller, _eval_out(run_dir, 0), title=str(cfg.name))
+        totals = controller.run_totals() if hasattr(controller, "run_totals") else None
         stats = controller.snapshot() if hasattr(controller, "snapshot") else {}
     finally:
         close = getattr(controller, "close", None)
@@ -151,6 +310,11 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
     logger.log_metrics(metrics, step=0)
     final = {"frames": 0, **metrics}
     dump_json(run_dir / "final_metrics.json", final)
+    write_summary(run_dir, {
+        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
+        "eval_episodes": len(evaluator.scenarios), "metrics": {str(cfg.name): agg},
+        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
+    })
     log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
     return final
 
@@ -166,6 +330,12 @@ def _train(
     off_policy = cfg.algo.name in OFF_POLICY
     has_advisor = cfg.advisor.kind != "none"
     policy = make_policy(cfg, behaviour_actor(learner), env_cfg)
+    replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None
+    counters: dict[str, Any] = {"frames": 0, "batches": 0, "updates": 0, "utd_debt": 0.0, "next_eval": 0, "next_ckpt": 0,
+                                "update_s": 0.0, "overlap_s": 0.0}
+    counters["next_eval"] = tr.eval_every_frames or tr.total_frames
+    counters["next_ckpt"] = tr.checkpoint_every_frames or tr.total_frames
+    updates = OffPolicyUpdates(learner, replay, tr, counters) if off_policy else None
     collector = UAVCollector(
         env,
         policy,
@@ -176,11 +346,10 @@ def _train(
         # init_random_frames would then stack steps with different keys
         keep_keys=TRANSITION_KEYS,
         seed=int(cfg.seed),
+        between=updates.run if updates is not None else None,
+        on_step=updates.add if updates is not None else None,
+        overlap=tr.overlap_advice,
     )
-    replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None
-    counters: dict[str, Any] = {"frames": 0, "batches": 0, "updates": 0, "utd_debt": 0.0, "next_eval": 0, "next_ckpt": 0}
-    counters["next_eval"] = tr.eval_every_frames or tr.total_frames
-    counters["next_ckpt"] = tr.checkpoint_every_frames or tr.total_frames
     last_eval: dict[str, float] = {}
     if ckpt:
         learner.load_state_dict(ckpt["learner"])
@@ -212,29 +381,31 @@ def _train(
     bar = tqdm(total=tr.total_frames, initial=counters["frames"], unit="frame", disable=not tr.progress_bar, dynamic_ncols=True)
     t_start, frames_start = time.perf_counter(), counters["frames"]
     train_logs: dict[str, float] = {}
+    timing = dict(collector.timing)
+    t_iter = time.perf_counter()  # collection and updates count as training time; evaluation does not
     try:
         for batch in collector:
             t_batch = time.perf_counter()
             frames = collector.frames
-            n_new = frames - counters["frames"]
+            n_new = batch.numel()
             counters["frames"] = frames
             counters["batches"] += 1
             if off_policy:
-                replay.extend(batch.select(*REPLAY_KEYS, strict=False).reshape(-1))
                 noise = getattr(learner, "noise", None)
                 if noise is not None and hasattr(noise, "step"):
                     noise.step(n_new)  # DDPG: anneal the exploration noise by frames
-                if frames >= tr.init_random_frames and len(replay) >= tr.batch_size:
-                    counters["utd_debt"] += tr.utd_ratio * n_new
-                    n_updates = int(counters["utd_debt"])
-                    counters["utd_debt"] -= n_updates
-                    for _ in range(n_updates):
-                        train_logs = learner.update(replay.sample())
-                    counters["updates"] += n_updates
+                if frames >= tr.total_frames:
+                    updates.flush()  # the last step's gradient steps have no next step to run in
+                train_logs = updates.logs
             else:
                 train_logs = learner.update(batch)
                 counters["updates"] += 1
-            t_update = time.perf_counter() - t_batch
+            # the updates ran inside the batch's steps (off-policy) or just now (on-policy)
+            t_update = collector.timing["between_s"] - timing["between_s"] + (time.perf_counter() - t_batch)
+            t_overlap = collector.timing["overlap_s"] - timing["overlap_s"]
+            timing = dict(collector.timing)
+            counters["update_s"] += t_update
+            counters["overlap_s"] += t_overlap
 
             if counters["batches"] % tr.log_every_batches == 0:
                 _, episodes = collector.episode_metrics()
@@ -245,10 +416,12 @@ def _train(
                     **(_prefixed("override", collector.override_stats(reset=True)) if has_advisor else {}),
                     "time/fps": (frames - frames_start) / max(elapsed, 1e-9),
                     "time/update_s": t_update,
+                    "time/update_overlap_s": t_overlap,
                     "train/updates": counters["updates"],
                     "train/replay_size": len(replay) if replay is not None else 0,
                 }
                 logger.log_metrics(metrics, step=frames)
+            counters["train_s"] = counters.get("train_s", 0.0) + (time.perf_counter() - t_iter)
             if frames >= counters["next_eval"] or frames >= tr.total_frames:
                 last_eval = evaluate(frames)
                 counters["last_eval_frames"] = frames
@@ -262,6 +435,7 @@ def _train(
             post = {"fps": f"{(frames - frames_start) / max(time.perf_counter() - t_start, 1e-9):.0f}"}
             post.update({k: f"{last_eval[k]:.3f}" for k in ("DCR", "CR", "SLR") if k in last_eval})
             bar.set_postfix(post, refresh=False)
+            t_iter = time.perf_counter()
     finally:
         bar.close()
         collector.shutdown()
@@ -275,7 +449,24 @@ def _train(
         **_prefixed("eval", last_eval),
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in learner.actor.parameters())),
     }
+    if has_advisor:
+        final.update(_prefixed("override", _deterministic_counts(policy.run_totals())))
+    t_base = time.perf_counter()
+    if tr.baselines:
+        final.update(_baselines(cfg, env_cfg, evaluator, run_dir))
     dump_json(run_dir / "final_metrics.json", final)
+    baselines_s = time.perf_counter() - t_base
+    train_s = counters.get("train_s", 0.0)
+    write_summary(run_dir, {
+        "name": str(cfg.name), "controller": "learner", "run_dir": str(run_dir), "frames": counters["frames"],
+        "full_run_frames": _full_run_frames(), "updates": counters["updates"], "train_s": train_s,
+        "fps": counters["frames"] / train_s if train_s else None,
+        "update_s": counters["update_s"], "overlap_s": counters["overlap_s"], "baselines_s": baselines_s,
+        "eval_episodes": len(evaluator.scenarios),
+        "metrics": {f"{cfg.name} (trained actor)": last_eval, **_baseline_rows(final)},
+        "advisor_kind": str(cfg.advisor.kind), "override": policy.run_totals() if has_advisor else None,
+        "pictures": _pictures(run_dir, counters["frames"]),
+    })
     log.info("%s done at %d frames: %s", cfg.name, counters["frames"], {k: round(last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
     return final
 
@@ -285,7 +476,11 @@ def main(cfg: DictConfig) -> None:
     # one INFO line per HTTP request buries the progress bar; the LLM counters are in the logs
     logging.getLogger("httpx").setLevel(logging.WARNING)
     final = run(cfg)
-    print(json.dumps(final, indent=1))
+    summary = (run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)) / "summary.json"
+    if summary.is_file():
+        print(format_summary(json.loads(summary.read_text())))
+    else:
+        print(json.dumps(final, indent=1))
 
 
 if __name__ == "__main__":

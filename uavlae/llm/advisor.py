@@ -2,7 +2,9 @@
 
 ``LLMAdvisor.advise(states)`` (async) sends one request per distinct prompt, all at once under
 a concurrency limit; each runs the extractor's ask-again loop (paper: at most 10 attempts).
-``advise_sync`` serves a plain training loop from one background event loop and one client.
+``advise_sync`` serves a plain training loop from one background event loop and one client;
+``submit`` starts the same work there and returns a future at once (the loop runs its updates
+while the requests are in flight).
 The advisor never applies the fallback itself: an :class:`AdviceFailure` carries
 ``cfg.fallback`` and the caller (the override module) ends the episode or uses the policy's or
 the heuristic's action.
@@ -11,6 +13,7 @@ the heuristic's action.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import os
@@ -333,10 +336,14 @@ class LLMAdvisor:
                 self._loop, self._thread = loop, t
         return self._loop
 
+    def submit(self, states: Sequence[AdvisorState]) -> concurrent.futures.Future:
+        """:meth:`advise` started on the background loop; returns at once. The requests are in
+        flight while the caller works; ``future.result(timeout)`` gives the answers."""
+        return asyncio.run_coroutine_threadsafe(self.advise(list(states)), self._background_loop())
+
     def advise_sync(self, states: Sequence[AdvisorState], timeout: float | None = None
                     ) -> list[Advice | AdviceFailure]:
         """Blocking :meth:`advise`, on one long-lived background loop (safe inside Jupyter too)."""
         if not states:
             return []
-        fut = asyncio.run_coroutine_threadsafe(self.advise(states), self._background_loop())
-        return fut.result(timeout)
+        return self.submit(states).result(timeout)

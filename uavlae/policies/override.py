@@ -31,8 +31,25 @@ Advisors share one small protocol (duck-typed, see :class:`Advisor`)::
 where ``td_rows`` is the tensordict of the triggered rows only (with its ``("state", ...)``
 entries) and ``rows`` their indices in the batch. An advisor may expose ``source`` (the
 ``action_source`` value of its successful actions, default LLM), ``fallback`` (its own
-configured fallback, used when the policy's ``fallback`` is None), ``snapshot()`` (counters)
-and ``close()``.
+configured fallback, used when the policy's ``fallback`` is None), ``snapshot()`` (counters),
+``close()``, and ``start(td_rows, rows)``: the same request sent without waiting, returning a
+handle whose ``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on
+the server while the caller works).
+
+A step in two halves: :meth:`OverridePolicy.begin` decides the triggered rows from the state
+alone and starts their advice; :meth:`OverridePolicy.finish` runs the actor, waits for the
+answers and merges them. ``forward`` is ``finish(begin(td))``; the collector runs the learner's
+scheduled gradient steps between the two, while the requests are in flight. Neither half reads
+the actor's parameters before ``finish``, so what runs in between cannot change the answers.
+
+Fewer calls, beyond the paper (both off by default, both counted in :meth:`snapshot`):
+
+- ``hold_steps = k > 1``: a valid answer is executed again on its row for up to ``k`` slots in
+  a row while that row stays triggered, in the same episode; a row that leaves the trigger,
+  starts a new episode or gets a failed answer asks again.
+- ``max_calls = n``: at most ``n`` rows are sent to the advisor in the whole run (the module's
+  counter is checkpointed); triggered rows beyond it act with the actor (``source/policy``,
+  counted in ``budget_skipped``); held answers still run out their ``k`` slots.
 
 Only ``"action"`` is overridden: an actor's other outputs (``"loc"``, ``"scale"``,
 ``"action_log_prob"``) stay the actor's, so an on-policy learner must not be fed overridden
@@ -51,7 +68,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
@@ -66,10 +85,14 @@ MODES = ("proximity", "fixed_prob", "always", "never")
 FALLBACKS = ("policy", "heuristic", "end_episode")
 # the env's distances to the nearest obstacle of each kind (docs/env_contract.md)
 PROXIMITY_KEYS = (("state", "d_bz"), ("state", "d_nfz"), ("state", "d_rz"), ("state", "d_ou"))
+STEP_KEY = ("state", "step")  # the slot within the episode: a held answer never crosses a reset
+# what an advisor's snapshot counts (summed over the run by OverridePolicy.run_totals)
+ADVISOR_COUNTS = ("requests", "calls", "cache_hits", "retries", "ask_again", "advice_ok", "failures",
+                  "prompt_tokens", "completion_tokens", "rows_advised")
 
 __all__ = [
     "Advisor", "FALLBACK", "HEURISTIC", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter", "OverridePolicy",
-    "POLICY", "SOURCE_NAMES",
+    "POLICY", "Pending", "SOURCE_NAMES",
 ]
 
 
@@ -77,6 +100,34 @@ class Advisor(Protocol):
     """What :class:`OverridePolicy` needs from an advisor."""
 
     def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]: ...
+
+
+class _Answered:
+    """The handle of an advisor without ``start``: answered when asked."""
+
+    def __init__(self, answer: tuple[Tensor, Tensor]):
+        self.answer = answer
+        self.done_at = time.perf_counter()
+
+    def result(self) -> tuple[Tensor, Tensor]:
+        return self.answer
+
+
+@dataclass
+class Pending:
+    """What :meth:`OverridePolicy.begin` started for one step (rows are batch indices)."""
+
+    trig: Tensor  # [B] bool: triggered rows
+    held: Tensor  # [B] bool: triggered rows executing a held answer (no request)
+    skipped: Tensor  # [B] bool: triggered rows the call budget left to the actor
+    rows: Tensor  # [n] int64: the rows sent to the advisor
+    handle: Any  # the advisor's handle (result()), None when no row was sent
+    started_at: float  # time.perf_counter() when the requests were sent
+
+    @property
+    def done_at(self) -> float | None:
+        """When the answers arrived (None: still in flight, or nothing was asked)."""
+        return getattr(self.handle, "done_at", None) if self.handle is not None else None
 
 
 # ---------------------------------------------------------------------------- advisors
@@ -146,20 +197,32 @@ class LLMAdvisorAdapter:
         self.env_cfg = make_env_config(env_cfg)
         self.limits = WorldLimits.from_env_config(self.env_cfg)
         self.timeout = timeout
+        self.run_latencies: list[float] = []  # the windows already reset, for the run's quantiles
 
     @property
     def fallback(self) -> str:
         return self.llm.cfg.fallback
 
     def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
-        from uavlae.llm import Advice, advisor_states_from_tensordict
+        return self.start(td_rows, rows).result()
+
+    def start(self, td_rows: TensorDictBase, rows: Tensor) -> Any:
+        """Send the rows' requests and return at once; ``result()`` waits for the answers."""
+        from uavlae.llm import advisor_states_from_tensordict
 
         n = td_rows.batch_size[0]
         states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits)
-        results = self.llm.advise_sync(states, timeout=self.timeout)
+        submit = getattr(self.llm, "submit", None)
+        if submit is None:  # an advisor with only the blocking call
+            return _Answered(self._actions(self.llm.advise_sync(states, timeout=self.timeout)))
+        return _LLMHandle(self, submit(states))
+
+    def _actions(self, results: list[Any]) -> tuple[Tensor, Tensor]:
+        from uavlae.llm import Advice
+
         v_max = self.limits.v_max
-        actions = torch.zeros(n, 2)
-        ok = torch.zeros(n, dtype=torch.bool)
+        actions = torch.zeros(len(results), 2)
+        ok = torch.zeros(len(results), dtype=torch.bool)
         for i, r in enumerate(results):
             if isinstance(r, Advice):
                 actions[i] = torch.tensor(r.action(v_max))
@@ -167,10 +230,38 @@ class LLMAdvisorAdapter:
         return actions.clamp(-1.0, 1.0), ok
 
     def snapshot(self, reset: bool = False) -> dict[str, float]:
+        if reset:  # the run's per-call latencies outlive the logging window
+            self.run_latencies.extend(self.llm.stats.latencies)
         return self.llm.stats.snapshot(reset=reset)
+
+    def latencies(self) -> list[float]:
+        """Every answered HTTP call's latency in this run, seconds (the current window too)."""
+        return [*self.run_latencies, *self.llm.stats.latencies]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"run_latencies": torch.tensor(self.run_latencies, dtype=torch.float64)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.run_latencies[:] = [float(x) for x in state["run_latencies"].tolist()]
 
     def close(self) -> None:
         self.llm.close()
+
+
+class _LLMHandle:
+    """The LLM's answers for one step, in flight; ``done_at`` is set when they arrive."""
+
+    def __init__(self, adapter: LLMAdvisorAdapter, future: Any):
+        self.adapter = adapter
+        self.future = future
+        self.done_at: float | None = None
+        future.add_done_callback(self._arrived)
+
+    def _arrived(self, _future: Any) -> None:
+        self.done_at = time.perf_counter()
+
+    def result(self) -> tuple[Tensor, Tensor]:
+        return self.adapter._actions(self.future.result(self.adapter.timeout))
 
 
 # ---------------------------------------------------------------------------- the module
@@ -191,6 +282,9 @@ class OverridePolicy(TensorDictModuleBase):
         heuristic: a ``HeuristicPolicy`` for ``fallback="heuristic"`` (a
             :class:`HeuristicAdvisor`'s own heuristic is used when this is None).
         seed: seeds the trigger generator of ``"fixed_prob"``.
+        hold_steps: slots a valid answer is executed on its row while the row stays triggered
+            (1: the paper, ask every slot).
+        max_calls: rows the advisor may be asked in the run (None: no budget).
     """
 
     out_keys = ["action", "action_source", "override_abort"]
@@ -205,6 +299,8 @@ class OverridePolicy(TensorDictModuleBase):
         fallback: str | None = "policy",
         heuristic: Any = None,
         seed: int = 0,
+        hold_steps: int = 1,
+        max_calls: int | None = None,
     ):
         super().__init__()
         if mode not in MODES:
@@ -221,6 +317,10 @@ class OverridePolicy(TensorDictModuleBase):
             heuristic = advisor.heuristic
         if fallback == "heuristic" and heuristic is None:
             raise ValueError("override.fallback='heuristic' needs a heuristic policy")
+        if isinstance(hold_steps, bool) or int(hold_steps) != hold_steps or hold_steps < 1:
+            raise ValueError(f"advisor.hold_steps must be an integer >= 1 (1: ask every slot), got {hold_steps!r}")
+        if max_calls is not None and (isinstance(max_calls, bool) or int(max_calls) != max_calls or max_calls < 0):
+            raise ValueError(f"advisor.max_calls must be null (no budget) or an integer >= 0, got {max_calls!r}")
         self.actor = actor
         # plain attributes, not submodules: never in state_dict, never moved by .to()
         self.__dict__["advisor"] = advisor
@@ -230,6 +330,10 @@ class OverridePolicy(TensorDictModuleBase):
         self.fp = float(fp)
         self.fallback = fallback
         self.seed = int(seed)
+        self.hold_steps = int(hold_steps)
+        self.max_calls = None if max_calls is None else int(max_calls)
+        self.calls_used = 0  # rows sent to the advisor in the run (max_calls)
+        self.hold: dict[str, Tensor] | None = None  # per row: action, source, slots left, last step
         self.deterministic = False  # evaluation / deployment: actor alone, deterministic
         self._active_actor: Any = None  # set by using_actor() (random warm-up frames)
         self.generator = torch.Generator()
@@ -237,8 +341,12 @@ class OverridePolicy(TensorDictModuleBase):
         in_keys = list(getattr(actor, "in_keys", ["observation"]))
         if advisor is not None and mode == "proximity":
             in_keys += [k for k in PROXIMITY_KEYS if k not in in_keys]
+        if advisor is not None and self.hold_steps > 1 and STEP_KEY not in in_keys:
+            in_keys.append(STEP_KEY)
         self.in_keys = in_keys
         self.reset_counters()
+        self.totals = dict(self.counts)  # never reset: the run's counters (run_totals)
+        self.advisor_totals = {k: 0.0 for k in ADVISOR_COUNTS}  # the advisor's, summed over resets
 
     # ------------------------------------------------------------------ switches
     @property
@@ -290,16 +398,55 @@ class OverridePolicy(TensorDictModuleBase):
         return td if out is None else out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        td = self._act(tensordict)
+        return self.finish(tensordict, self.begin(tensordict))
+
+    def begin(self, td: TensorDictBase) -> Pending:
+        """The first half of a step: the triggered rows (from the state alone) and their advice,
+        sent; held answers and the call budget decide which rows are asked."""
+        trig = self.trigger(td)
+        B = trig.shape[0]
+        none = torch.zeros(B, dtype=torch.bool, device=trig.device)
+        held, skipped = none, none
+        ask = trig
+        if trig.any() and self.hold_steps > 1:
+            h = self._hold_state(B, trig.device)
+            step = td.get(STEP_KEY).reshape(B).to(trig.device)
+            held = trig & (h["left"] > 0) & (step == h["step"] + 1)
+            ask = trig & ~held
+        if self.max_calls is not None and ask.any():
+            left = max(self.max_calls - self.calls_used, 0)
+            within = torch.cumsum(ask.long(), 0) <= left  # the first rows in batch order
+            skipped, ask = ask & ~within, ask & within
+        rows = ask.nonzero().squeeze(-1)
+        handle = None
+        started = time.perf_counter()
+        if rows.numel():
+            self.calls_used += int(rows.numel())
+            start = getattr(self.advisor, "start", None)
+            with torch.no_grad():
+                handle = start(td[rows], rows) if start is not None else _Answered(self.advisor.advise(td[rows], rows))
+        return Pending(trig=trig, held=held, skipped=skipped, rows=rows, handle=handle, started_at=started)
+
+    def finish(self, td: TensorDictBase, pending: Pending) -> TensorDictBase:
+        """The second half: the actor acts, the answers are awaited and merged."""
+        td = self._act(td)
         action = td.get("action")
         B = td.batch_size[0]
         source = torch.zeros(B, dtype=torch.int64, device=action.device)
         abort = torch.zeros(B, dtype=torch.bool, device=action.device)
-        trig = self.trigger(td)
-        rows = trig.nonzero().squeeze(-1)
+        trig, held, rows = pending.trig.to(action.device), pending.held.to(action.device), pending.rows
+        if held.any() or rows.numel():
+            action = action.clone()
+        if held.any():
+            h = self.hold
+            action[held] = h["action"][held].to(dtype=action.dtype)
+            source[held] = h["source"][held]
+        good = rows[:0]
+        wait = 0.0
         if rows.numel():
-            with torch.no_grad():
-                adv_action, ok = self.advisor.advise(td[rows], rows)
+            t0 = time.perf_counter()
+            adv_action, ok = pending.handle.result()
+            wait = time.perf_counter() - t0
             adv_action = adv_action.to(device=action.device, dtype=action.dtype).clamp(-1.0, 1.0)
             ok = ok.to(device=action.device, dtype=torch.bool).reshape(-1)
             if adv_action.shape != (rows.numel(), action.shape[-1]) or ok.shape[0] != rows.numel():
@@ -307,67 +454,139 @@ class OverridePolicy(TensorDictModuleBase):
                     f"advisor returned actions {tuple(adv_action.shape)} and ok {tuple(ok.shape)} "
                     f"for {rows.numel()} rows"
                 )
-            action = action.clone()
             good, bad = rows[ok], rows[~ok]
             action[good] = adv_action[ok]
             source[good] = int(getattr(self.advisor, "source", LLM))
             if bad.numel():
                 source[bad] = FALLBACK
                 if self.fallback == "heuristic":
-                    h = self.heuristic.act(td[bad].get("state"))
-                    action[bad] = h.to(device=action.device, dtype=action.dtype)
+                    hact = self.heuristic.act(td[bad].get("state"))
+                    action[bad] = hact.to(device=action.device, dtype=action.dtype)
                 elif self.fallback == "end_episode":
                     abort[bad] = True
                 # "policy": the actor's action stays
+        if held.any() or rows.numel():
             td.set("action", action)
+        if self.hold_steps > 1 and trig.any():
+            self._update_hold(td, trig, held, good, action, source)
         td.set("action_source", source)
         td.set("override_abort", abort)
         if self.override_active:
-            self._count(source, trig, abort)
+            self._count(source, trig, abort, held, pending.skipped, int(rows.numel()), wait)
         return td
+
+    # ------------------------------------------------------------------ held answers
+    def _hold_state(self, B: int, device: torch.device) -> dict[str, Tensor]:
+        if self.hold is None or self.hold["left"].shape[0] != B:
+            self.hold = {
+                "action": torch.zeros(B, 2, device=device),
+                "source": torch.zeros(B, dtype=torch.int64, device=device),
+                "left": torch.zeros(B, dtype=torch.int64, device=device),  # executions still allowed
+                "step": torch.full((B,), -2, dtype=torch.int64, device=device),  # slot last executed
+            }
+        return self.hold
+
+    def _update_hold(self, td: TensorDictBase, trig: Tensor, held: Tensor, good: Tensor, action: Tensor,
+                     source: Tensor) -> None:
+        B = trig.shape[0]
+        h = self._hold_state(B, trig.device)
+        h["left"] = torch.where(held, h["left"] - 1, torch.zeros_like(h["left"]))  # anything else asks again
+        if good.numel():
+            h["action"][good] = action[good].to(h["action"].dtype)
+            h["source"][good] = source[good]
+            h["left"][good] = self.hold_steps - 1
+        h["step"] = td.get(STEP_KEY).reshape(B).to(trig.device).clone()
 
     # ------------------------------------------------------------------ counters
     def reset_counters(self) -> None:
-        self.counts = {"frames": 0, "triggered": 0, "aborts": 0, **{f"source/{n}": 0 for n in SOURCE_NAMES.values()}}
+        self.counts = {"frames": 0, "triggered": 0, "aborts": 0, "held": 0, "budget_skipped": 0,
+                       "advised": 0, "advice_wait_s": 0.0,
+                       **{f"source/{n}": 0 for n in SOURCE_NAMES.values()}}
 
-    def _count(self, source: Tensor, trig: Tensor, abort: Tensor) -> None:
-        c = self.counts
-        c["frames"] += int(source.numel())
-        c["triggered"] += int(trig.sum())
-        c["aborts"] += int(abort.sum())
+    def _count(self, source: Tensor, trig: Tensor, abort: Tensor, held: Tensor, skipped: Tensor, advised: int,
+               wait: float) -> None:
         per = torch.bincount(source.reshape(-1).cpu(), minlength=len(SOURCE_NAMES))
-        for k, name in SOURCE_NAMES.items():
-            c[f"source/{name}"] += int(per[k])
+        add = {"frames": int(source.numel()), "triggered": int(trig.sum()), "aborts": int(abort.sum()),
+               "held": int(held.sum()), "budget_skipped": int(skipped.sum()), "advised": advised,
+               "advice_wait_s": wait, **{f"source/{name}": int(per[k]) for k, name in SOURCE_NAMES.items()}}
+        for c in (self.counts, self.totals):
+            for k, v in add.items():
+                c[k] = c.get(k, 0) + v
 
-    def snapshot(self, reset: bool = False) -> dict[str, float]:
-        """Counters since the last reset: frames acted with the override on, ``triggered``,
-        ``source/<name>``, ``aborts``, ``trigger_rate`` (triggered / frames), ``override_rate``
-        (advisor actions executed / frames), ``advice_fail_rate`` (fallbacks / triggered), and
-        the advisor's own counters under ``advisor/`` (the LLM's: requests, calls, cache hits,
-        retries, failures by kind, tokens, latency quantiles)."""
-        c = dict(self.counts)
+    @staticmethod
+    def _rates(c: dict[str, Any]) -> dict[str, Any]:
         frames, trig = c["frames"], c["triggered"]
         nan = float("nan")
         c["trigger_rate"] = trig / frames if frames else nan
         c["override_rate"] = (c["source/llm"] + c["source/heuristic"]) / frames if frames else nan
         c["advice_fail_rate"] = c["source/fallback"] / trig if trig else nan
+        return c
+
+    def snapshot(self, reset: bool = False) -> dict[str, float]:
+        """Counters since the last reset: frames acted with the override on, ``triggered``,
+        ``source/<name>``, ``aborts``, ``held`` (triggered rows that executed a held answer),
+        ``budget_skipped`` (triggered rows left to the actor by ``max_calls``), ``advised`` (rows
+        sent to the advisor), ``advice_wait_s`` (time spent waiting for answers after the
+        work done while they were in flight), ``trigger_rate`` (triggered / frames),
+        ``override_rate`` (advisor actions executed / frames), ``advice_fail_rate``
+        (fallbacks / triggered), ``calls_used`` / ``max_calls`` (the run's budget; -1: none),
+        and the advisor's own counters under ``advisor/`` (the LLM's: requests, calls, cache
+        hits, retries, failures by kind, tokens, latency quantiles)."""
+        c = self._rates(dict(self.counts))
+        c["calls_used"] = self.calls_used
+        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
+        c["hold_steps"] = self.hold_steps
         snap = getattr(self.advisor, "snapshot", None)
         if snap is not None:
-            c.update({f"advisor/{k}": v for k, v in snap(reset=reset).items()})
+            adv = snap(reset=reset)
+            c.update({f"advisor/{k}": v for k, v in adv.items()})
+            if reset:
+                for k in ADVISOR_COUNTS:
+                    self.advisor_totals[k] += float(adv.get(k, 0) or 0)
         if reset:
             self.reset_counters()
         return c
 
+    def run_totals(self) -> dict[str, Any]:
+        """The run's counters (never reset, checkpointed): :meth:`snapshot`'s names, the
+        advisor's counts summed over the whole run and, for an LLM advisor, its per-call
+        latency quantiles over every answered call (``advisor/latency_p50_s``, ``_p95_s``)."""
+        c = self._rates(dict(self.totals))
+        c["calls_used"] = self.calls_used
+        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
+        c["hold_steps"] = self.hold_steps
+        snap = getattr(self.advisor, "snapshot", None)
+        if snap is not None:
+            window = snap(reset=False)
+            for k in ADVISOR_COUNTS:
+                if k in window or self.advisor_totals[k]:
+                    c[f"advisor/{k}"] = self.advisor_totals[k] + float(window.get(k, 0) or 0)
+        lat = getattr(self.advisor, "latencies", None)
+        if lat is not None:
+            xs = sorted(lat())
+            for name, p in (("latency_p50_s", 0.5), ("latency_p95_s", 0.95)):
+                c[f"advisor/{name}"] = xs[min(len(xs) - 1, int(p * len(xs)))] if xs else float("nan")
+        return c
+
     # ------------------------------------------------------------------ state
     def get_extra_state(self) -> dict[str, Any]:
-        # an advisor with state that shapes its answers (the heuristic's plan cache) saves it too
+        # an advisor with state that shapes its answers (the heuristic's plan cache) saves it too;
+        # the held answers and the budget's counter shape the next steps, so they travel as well
         adv = getattr(self.advisor, "state_dict", None)
         return {"generator": self.generator.get_state(), "counts": dict(self.counts),
+                "totals": dict(self.totals), "advisor_totals": dict(self.advisor_totals),
+                "calls_used": self.calls_used,
+                "hold": None if self.hold is None else {k: v.clone() for k, v in self.hold.items()},
                 "advisor": adv() if adv is not None else None}
 
     def set_extra_state(self, state: Mapping[str, Any]) -> None:
         self.generator.set_state(state["generator"])
         self.counts = dict(state["counts"])
+        self.totals = dict(state.get("totals", self.counts))
+        self.advisor_totals.update(state.get("advisor_totals", {}))
+        self.calls_used = int(state.get("calls_used", 0))
+        hold = state.get("hold")
+        self.hold = None if hold is None else {k: v.clone() for k, v in hold.items()}
         if state.get("advisor") is not None and hasattr(self.advisor, "load_state_dict"):
             self.advisor.load_state_dict(state["advisor"])
 
@@ -386,4 +605,5 @@ class OverridePolicy(TensorDictModuleBase):
 
     def extra_repr(self) -> str:
         return (f"mode={self.mode!r}, d_th={self.d_th}, fp={self.fp}, fallback={self.fallback!r}, "
+                f"hold_steps={self.hold_steps}, max_calls={self.max_calls}, "
                 f"advisor={type(self.advisor).__name__ if self.advisor is not None else None}")
