@@ -106,3 +106,16 @@ TTT_ARGS ?=
 bench-ttt: $(STAMP)
 	$(BIN)/pip install -q -e '.[bench]' torch==2.13.0  # the pin keeps the CPU build
 	$(BIN)/python benchmarks/time_to_target.py --cap-minutes $(TTT_CAP_MIN) $(TTT_ARGS)
+
+# SAC+LLM's frames/s beside SAC's at `make run`'s settings (hold_steps 1 and 4, cold LLM cache)
+# -> benchmarks/sac_llm_speed.json. SPEED_ARGS adds options, e.g. --overlap-ab, --hold4-args "...".
+.PHONY: bench-sac-llm
+SPEED_ARGS ?=
+bench-sac-llm: $(STAMP)
+	$(BIN)/python benchmarks/sac_llm_speed.py $(SPEED_ARGS)
+
+# How often the override's trigger fires when the heuristic, the untrained actor or a random
+# policy flies, and the LLM calls that asks for -> benchmarks/trigger_rate.json (no LLM calls)
+.PHONY: bench-trigger
+bench-trigger: $(STAMP)
+	$(BIN)/python benchmarks/trigger_rate.py
