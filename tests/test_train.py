@@ -82,6 +82,43 @@ def test_exp_trains_end_to_end(tmp_path, exp):
         assert _csv_steps(tmp_path / exp, "train/alpha")
 
 
+def test_off_policy_schedule_is_per_env_step_and_the_overlap_changes_no_number(tmp_path):
+    from uavlae.train import format_summary
+
+    # TINY: B = 4, 128 frames, warm-up 32 frames, utd 0.25, replay sample 16. A step owes
+    # 0.25 * 4 = 1 gradient step once frames >= 32 (the 8th to the 32nd step: 25 steps), each
+    # run at the next step while its advice is in flight, the last one at the end.
+    on = _run("sac_heuristic", tmp_path / "on", "trainer.baselines=false")
+    assert on["updates"] == 25
+    off = _run("sac_heuristic", tmp_path / "off", "trainer.baselines=false", "trainer.overlap_advice=false")
+    assert off == on  # the heuristic never reads the actor: sending it before the updates changes nothing
+    assert on["override/advised"] == on["override/triggered"] > 0  # hold_steps=1, no budget: every one asked
+    assert on["override/source/heuristic"] == on["override/triggered"]
+    summary = json.loads((tmp_path / "on" / "summary.json").read_text())
+    assert summary["frames"] == 128 and summary["updates"] == 25 and summary["full_run_frames"] == 1_000_000
+    assert summary["override"]["advisor/rows_advised"] == on["override/advised"]
+    text = format_summary(summary)
+    n = int(on["override/triggered"])
+    assert f"Advisor (heuristic): triggered on {n} of 128 frames ({100 * n / 128:.1f}%); {n} rows asked" in text
+
+
+def test_closing_summary_names_the_baselines_and_the_pictures(tmp_path):
+    from uavlae.train import format_summary
+
+    final = _run("sac", tmp_path / "s")
+    for who in ("heuristic", "random"):
+        for k in ("DCR", "CR", "SLR", "RVR", "ECR"):
+            assert 0.0 <= final[f"baseline/{who}/{k}"] <= 1.0
+    summary = json.loads((tmp_path / "s" / "summary.json").read_text())
+    assert summary["metrics"]["heuristic"]["DCR"] == final["baseline/heuristic/DCR"]
+    assert summary["metrics"]["uniform random"]["CR"] == final["baseline/random/CR"]
+    text = format_summary(summary)
+    assert "128 environment frames (0.013% of a full run's 1,000,000" in text
+    assert "heuristic" in text and "uniform random" in text and "sac (trained actor)" in text
+    assert str(tmp_path / "s" / "eval" / "frames_000000128" / "trajectory_*.png") in text
+    assert list((tmp_path / "s" / "eval" / "baseline_heuristic").glob("trajectory_*.png"))
+
+
 def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
     # trainer.compile_env (training and evaluation envs) / algo.compile (of torchrl's SACLoss) through the whole loop
     import uavlae.train as tr
@@ -258,3 +295,54 @@ def test_llm_exps_against_the_local_server(tmp_path, local_llm, exp, extra):
         # every row was triggered: the LLM (or its fallback) acted on all 4 frames
         assert sum(json.loads(line.split(",")[1]) for line in
                    (run_dir / "logs/scalars/override/triggered.csv").read_text().splitlines()) == 4
+
+
+LLM_RESUME = [
+    "trainer.total_frames=160", "trainer.env_batch_size=2", "trainer.frames_per_batch=8",
+    "trainer.init_random_frames=4", "trainer.batch_size=4", "trainer.utd_ratio=0.5",
+    "trainer.replay_capacity=256", "trainer.eval_episodes=1", "trainer.eval_max_steps=3",
+    "trainer.eval_every_frames=0", "trainer.checkpoint_every_frames=8", "trainer.eval_plots=0",
+    "trainer.progress_bar=false", "trainer.baselines=false", "logger.wandb.mode=disabled",
+    "llm.max_tokens=96", "llm.reasoning_max_chars=40",
+    # every row triggered every slot; an answer held 3 slots; 6 rows asked in all (3 per row)
+    "advisor.d_th=1000.0", "advisor.hold_steps=3", "advisor.max_calls=6",
+]
+
+
+@pytest.mark.integration
+def test_sac_llm_resume_after_sigkill_replays_the_uninterrupted_run(tmp_path, local_llm):
+    from uavlae.train import run
+
+    cache = tmp_path / "cache.sqlite"
+    llm = [f"llm.base_url={local_llm.base_url}", f"llm.cache_path={cache}"]
+    straight = run(_cfg("+exp=sac_llm", f"run_dir={tmp_path / 'straight'}", *LLM_RESUME, *llm, "llm.cache_mode=read_write"))
+    assert straight["frames"] == 160 and straight["override/calls_used"] == 6
+    # 160 frames = 80 slots of 2 rows, all triggered; 6 asked, the held slots after them, then the actor
+    assert straight["override/triggered"] == 160 and straight["override/budget_skipped"] > 0
+    summary = json.loads((tmp_path / "straight" / "summary.json").read_text())
+    assert summary["override"]["advisor/calls"] >= 1  # live answers, now in the cache
+    assert summary["overlap_s"] > 0  # gradient steps ran while a request was in flight
+
+    run_dir = tmp_path / "killed"
+    env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="disabled")
+    env.pop("WANDB_SERVICE", None)
+    cmd = [sys.executable, "-m", "uavlae.train", "+exp=sac_llm", f"run_dir={run_dir}", *LLM_RESUME, *llm,
+           "llm.cache_mode=replay_only"]
+    proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    last = run_dir / "checkpoints" / LAST
+    deadline = time.monotonic() + 300
+    while not last.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    if proc.poll() is not None:
+        pytest.fail(f"training ended before its first checkpoint: {proc.stderr.read().decode()[-3000:]}")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+    proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    state, _ = load_checkpoint(run_dir)
+    killed_at = state["counters"]["frames"]
+    assert 0 < killed_at < 160 and not (run_dir / "final_metrics.json").exists()
+
+    # the saved config replays from the cache only: a request the first run did not make is an error
+    resumed = run(_cfg(f"resume={run_dir}", "trainer.progress_bar=false", "logger.wandb.mode=disabled"))
+    assert resumed == straight

@@ -185,9 +185,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         full = int(summary["full_run_frames"])
         fps = summary.get("fps")
         lines.append(
-            f"{name}: trained {frames:,} environment frames ({100 * frames / full:.1f}% of a full run's {full:,}; "
+            f"{name}: trained {frames:,} environment frames ({100 * frames / full:.2g}% of a full run's {full:,}; "
             f"`make run RUN_ARGS=` trains all of it) with {int(summary['updates']):,} gradient steps"
-            + (f", {summary['train_s']:.0f} s at {fps:.1f} frames/s" if fps else "") + "."
+            + (f", {summary['train_s']:.1f} s at {fps:.1f} frames/s (evaluation not counted)" if fps else "") + "."
         )
     else:
         lines.append(f"{name}: evaluated (no training).")
@@ -215,7 +215,7 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{int(ov.get('source/fallback', 0)):,} failed answers."
         )
         calls = ov.get("advisor/calls")
-        if calls is not None:
+        if kind == "llm" and calls is not None:
             n = max(float(calls), 1.0)
             lines.append(
                 f"  LLM: {int(calls):,} HTTP calls ({1000 * calls / f_:.1f} per 1000 frames), "
