@@ -20,7 +20,7 @@ import httpx
 import pytest
 
 from uavlae.llm import (
-    Advice, AdviceCache, AdviceFailure, CacheMissError, FailureKind, LLMAdvisor, WorldLimits,
+    Advice, AdviceCache, AdviceFailure, CacheMissError, EndpointError, FailureKind, LLMAdvisor, WorldLimits,
     example_states, make_llm_config,
 )
 
@@ -185,10 +185,51 @@ def test_429_retry_after_is_capped():
 
 
 def test_4xx_is_not_retried_and_the_key_is_redacted():
-    h = Script(lambda r: httpx.Response(401, text=f"bad key {r.headers['authorization']}"))
+    h = Script(lambda r: httpx.Response(400, text=f"context too long {r.headers['authorization']}"))
     (f,), _ = run(h)
     assert f.kind is FailureKind.HTTP_ERROR and len(h.requests) == 1
     assert KEY not in f.detail and "***" in f.detail and KEY not in repr(f)
+
+
+@pytest.mark.parametrize("response,why", [
+    (lambda r: httpx.Response(401, text=f"bad key {r.headers['authorization']}"), "rejected the API key"),
+    (lambda r: httpx.Response(403, text="forbidden"), "rejected the API key"),
+    (lambda r: httpx.Response(404, text="The model `smol` does not exist."), "does not serve model"),
+    (lambda r: httpx.Response(405, text="method not allowed"), "does not serve model"),
+    (lambda r: httpx.Response(400, json={"error": {"message": "Model Not Exist"}}), "does not serve model"),
+    (lambda r: httpx.Response(200, text="<html>welcome to nginx</html>"), "not an OpenAI-compatible server"),
+    (lambda r: httpx.Response(200, json={"models": ["a"]}), "not an OpenAI-compatible server"),
+])
+def test_permanent_endpoint_faults_stop_at_once_with_one_message(response, why, caplog):
+    h = Script(response)
+    adv = LLMAdvisor(cfg(max_concurrency=2), transport=httpx.MockTransport(h))
+    try:
+        with pytest.raises(EndpointError) as info:
+            adv.advise_sync(STATES, timeout=50)  # 8 states, 2 in flight
+        msg = str(info.value)
+        assert "http://127.0.0.1:9/v1/chat/completions" in msg and "UAVLAE_TEST_KEY" in msg and why in msg
+        assert KEY not in msg and KEY not in repr(info.value)
+        sent = len(h.requests)
+        assert sent <= 2  # the two in flight at most; none of the six queued ones was sent
+        with pytest.raises(EndpointError):  # every later call stops too, without asking
+            adv.advise_sync(STATES[:1], timeout=50)
+        assert len(h.requests) == sent
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]  # no warning per state
+    finally:
+        adv.close()
+
+
+def test_a_stray_non_completion_after_good_answers_is_asked_again():
+    """An endpoint that has served chat completions is OpenAI-compatible: a later odd 200 (a
+    proxy's error page) is a bad answer, asked again, not a reason to stop the run."""
+    h = Script(GOOD, *([lambda r: httpx.Response(200, text="<html>gateway</html>")] * 3), GOOD)
+    adv = LLMAdvisor(cfg(), transport=httpx.MockTransport(h))
+    try:
+        (a,) = adv.advise_sync(STATES[:1], timeout=50)
+        (b,) = adv.advise_sync(STATES[1:2], timeout=50)
+    finally:
+        adv.close()
+    assert a.ok and b.ok and b.attempts == 4 and len(h.requests) == 5
 
 
 def test_truncated_json_asks_again_at_most_max_attempts():
@@ -216,7 +257,6 @@ def test_bad_answers_then_valid():
     ('{"vx": 9, "vy": 9, "Confidence": 1, "Reasoning": ""}', FailureKind.OVER_SPEED),
     (lambda r: httpx.Response(200, content=b'{"choices": [{"message": {"content": "' + b"a" * 10_000_000 + b'"}}]}'),
      FailureKind.TOO_LARGE),
-    (lambda r: httpx.Response(200, text="<html>gateway</html>"), FailureKind.INVALID_JSON),
 ])
 def test_bad_answers_forever_are_bounded(step, kind):
     h = Script(step)

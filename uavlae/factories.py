@@ -267,6 +267,7 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         fallback=adv.fallback,
         heuristic=heuristic,
         seed=int(cfg.seed if seed is None else seed),
+        perception_radius=env_cfg.safety.perception_radius,
     )
 
 

@@ -23,12 +23,13 @@ from typing import Any, Sequence
 import httpx
 
 from .cache import AdviceCache, cache_key
-from .client import BadResponse, RequestFailed, chat_completion
+from .client import BadResponse, PermanentFailure, RequestFailed, chat_completion
 from .config import LLMConfig, make_llm_config
 from .extractor import extract_action
 from .prompt import build_messages, retry_message, template
-from .schema import Advice, AdviceFailure, CacheMissError, ExtractionError, FailureKind, action_json_schema
-from .state import AdvisorState
+from .schema import (Advice, AdviceFailure, CacheMissError, EndpointError, ExtractionError, FailureKind,
+                     action_json_schema)
+from .state import AdvisorState, rounded_state
 
 log = logging.getLogger("uavlae.llm")
 
@@ -101,6 +102,9 @@ class LLMAdvisor:
         self.stats = AdvisorStats()
         self._cache = (AdviceCache(self.cfg.cache_path) if self.cfg.cache_mode != "off"
                        and self.cfg.cache_path else None)
+        if self.cfg.cache_key_round and self._cache is not None:
+            log.info("LLM advice cache keyed on the state's numbers rounded to %g (beyond the paper): "
+                     "near-identical states share one answer", self.cfg.cache_key_round)
         self._init_lazy()
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -114,6 +118,8 @@ class LLMAdvisor:
         self._server_url: str | None = None
         self.local_server = None  # LocalServer (base_url, pid) when this advisor started one
         self._lock = threading.Lock()
+        self._fatal: EndpointError | None = None  # a permanent endpoint fault: every later call raises it
+        self._endpoint_ok = False  # has this endpoint ever answered with a chat completion?
 
     def __getstate__(self) -> dict:
         """The client, loop, server and key never travel; a copy re-creates them lazily."""
@@ -212,13 +218,19 @@ class LLMAdvisor:
         elif c.response_format == "grammar":
             from string import Template
 
-            body["grammar"] = Template(template("action.gbnf")).substitute(
+            gbnf = "action_compact.gbnf" if c.observation == "compact" else "action.gbnf"
+            body["grammar"] = Template(template(gbnf)).substitute(
                 reasoning_max_chars=c.reasoning_max_chars)
         return body
 
+    def _messages(self, state: AdvisorState) -> list[dict]:
+        c = self.cfg
+        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars)
+
     def _key(self, messages: list[dict], state: AdvisorState) -> str:
         c = self.cfg
-        return cache_key({"model": c.model, "messages": messages, "temperature": c.temperature,
+        extra = {"cache_key_round": c.cache_key_round} if c.cache_key_round else {}
+        return cache_key({**extra, "model": c.model, "messages": messages, "temperature": c.temperature,
                           "top_p": c.top_p, "max_tokens": c.max_tokens, "seed": c.seed,
                           "response_format": c.response_format,
                           "reasoning_max_chars": c.reasoning_max_chars, "v_max": state.limits.v_max})
@@ -228,9 +240,12 @@ class LLMAdvisor:
         """One result per state, in order. Raises CacheMissError on a miss in replay_only."""
         if not states:
             return []
+        if self._fatal is not None:
+            raise self._fatal
         self.stats.add(requests=len(states))
-        prompts = [build_messages(s, self.cfg.prompt_ablation) for s in states]
-        keys = [self._key(m, s) for m, s in zip(prompts, states)]
+        prompts = [self._messages(s) for s in states]
+        keys = [self._key(self._messages(rounded_state(s, self.cfg.cache_key_round))
+                          if self.cfg.cache_key_round else m, s) for m, s in zip(prompts, states)]
         results: list[Advice | AdviceFailure | None] = [None] * len(states)
         todo: dict[str, list[int]] = {}
         for i, k in enumerate(keys):
@@ -251,6 +266,8 @@ class LLMAdvisor:
             uniq = list(todo.items())
             answers = await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k)
                                              for k, idx in uniq))
+            if self._fatal is not None:
+                raise self._fatal
             for (k, idx), a in zip(uniq, answers):
                 for i in idx:
                     results[i] = a
@@ -273,12 +290,22 @@ class LLMAdvisor:
             log.debug("LLM request retry (%s): %s", kind.value, self._redact(detail))
 
         for attempt in range(1, c.max_attempts + 1):
+            if self._fatal is not None:  # a sibling request met a permanent fault: stop asking
+                return self._fail(FailureKind.HTTP_ERROR, "endpoint refused", attempt, history, quiet=True)
             try:
                 res = await chat_completion(
                     client, url, self._body(current, state, attempt), headers, timeout_s=c.timeout_s,
                     max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
                     backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
-                    max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry)
+                    max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry,
+                    stop=lambda: self._fatal is not None)
+            except PermanentFailure as e:
+                self.stats.add(calls=0 if e.status is None else 1)
+                if e.status == 200 and self._endpoint_ok:  # it served chat completions before: a glitch
+                    kind, reason = FailureKind.INVALID_JSON, e.detail
+                else:
+                    self._set_fatal(url, e)
+                    return self._fail(FailureKind.HTTP_ERROR, e.detail, attempt, history, quiet=True)
             except RequestFailed as e:
                 self.stats.add(calls=1)
                 return self._fail(e.kind, e.detail, attempt, history)
@@ -286,6 +313,7 @@ class LLMAdvisor:
                 self.stats.add(calls=1)
                 kind, reason = e.kind, e.detail
             else:
+                self._endpoint_ok = True
                 self.stats.add(calls=1, prompt_tokens=res.prompt_tokens,
                                completion_tokens=res.completion_tokens)
                 with self.stats._lock:
@@ -313,11 +341,31 @@ class LLMAdvisor:
         return self._fail(history[-1], f"no valid action in {c.max_attempts} attempts", c.max_attempts,
                           history)
 
+    def _set_fatal(self, url: str, e: PermanentFailure) -> None:
+        if self._fatal is not None:
+            return
+        c = self.cfg
+        if e.status in (401, 403):
+            why = (f"rejected the API key (HTTP {e.status}); set a valid key in the environment variable "
+                   f"{c.api_key_env}" if c.api_key_env else
+                   f"needs an API key (HTTP {e.status}); name its environment variable in llm.api_key_env")
+        elif e.status == 200:
+            why = "is not an OpenAI-compatible server (its answer is not a chat completion); check llm.base_url"
+        else:
+            why = (f"does not serve model {c.model!r} at /chat/completions (HTTP {e.status}); "
+                   "check llm.base_url and llm.model")
+        key_note = f" (key from ${c.api_key_env})" if c.api_key_env else ""
+        self._fatal = EndpointError(f"LLM endpoint {url}{key_note} {why}. Server said: "
+                                    f"{self._redact(e.detail)[:200]}")
+
     def _fail(self, kind: FailureKind, detail: str, attempts: int,
-              history: list[FailureKind]) -> AdviceFailure:
+              history: list[FailureKind], quiet: bool = False) -> AdviceFailure:
         with self.stats._lock:
             self.stats.failures[kind.value] += 1
         detail = self._redact(detail)
+        if quiet:  # the run stops with the EndpointError's one message
+            return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
+                                 history=tuple(history))
         log.warning("LLM advice failed (%s) after %d attempt(s): %s; fallback=%s", kind.value, attempts,
                     detail, self.cfg.fallback)
         return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
