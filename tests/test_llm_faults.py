@@ -402,3 +402,46 @@ def test_cache_is_much_cheaper_than_a_call(tmp_path):
     per_hit = (time.perf_counter() - t0) / 20
     adv.close()
     assert r.source == "cache" and per_hit < 0.2 / 50
+
+
+def test_slot_affinity_sends_each_episode_to_its_slot_lru():
+    """Two slots, episodes E1 E2 E1 E3 E2: slots 0 1 0 1 0 (E3 takes the least recently used
+    slot, 1, forgetting E2; E2 then takes slot 0). After the first answer slot 0's cache is
+    saved and restored into slot 1."""
+    import dataclasses
+
+    base = STATES[:3]
+    seq = [base[0], base[1], dataclasses.replace(base[0], position=(1.0, 2.0)), base[2],
+           dataclasses.replace(base[1], position=(3.0, 4.0))]
+    seen, admin = [], []
+
+    def server(r: httpx.Request) -> httpx.Response:
+        if r.url.path == "/props":
+            return httpx.Response(200, json={"total_slots": 2})
+        if r.url.path.startswith("/slots/"):
+            admin.append((r.url.path, r.url.params["action"], json.loads(r.content)["filename"]))
+            return httpx.Response(200, json={})
+        seen.append(json.loads(r.content)["id_slot"])
+        return httpx.Response(200, json=completion(json.dumps(GOOD)))
+
+    adv = LLMAdvisor(cfg(slot_affinity=True), transport=httpx.MockTransport(server))
+    try:
+        for s in seq:
+            (a,) = adv.advise_sync([s], timeout=50)
+            assert a.ok
+    finally:
+        adv.close()
+    assert seen == [0, 1, 0, 1, 0]
+    assert [(p, act) for p, act, _ in admin] == [("/slots/0", "save"), ("/slots/1", "restore")]
+    assert admin[0][2] == admin[1][2]
+
+
+def test_slot_affinity_is_off_where_the_server_reports_no_slots():
+    def server(r: httpx.Request) -> httpx.Response:
+        if r.url.path == "/props":
+            return httpx.Response(404, text="no such route")
+        assert "id_slot" not in json.loads(r.content)
+        return httpx.Response(200, json=completion(json.dumps(GOOD)))
+
+    (a,), _ = run(server, slot_affinity=True)
+    assert a.ok

@@ -16,7 +16,7 @@ import logging
 import os
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from dataclasses import replace
 from typing import Any, Sequence
 
@@ -26,7 +26,7 @@ from .cache import AdviceCache, cache_key
 from .client import BadResponse, PermanentFailure, RequestFailed, chat_completion
 from .config import LLMConfig, make_llm_config
 from .extractor import extract_action
-from .prompt import build_messages, retry_message, template
+from .prompt import build_messages, episode_text, retry_message, template
 from .schema import (Advice, AdviceFailure, CacheMissError, EndpointError, ExtractionError, FailureKind,
                      action_json_schema)
 from .state import AdvisorState, rounded_state
@@ -53,6 +53,7 @@ class AdvisorStats:
             self.failures: Counter[str] = Counter()  # final failures by kind
             self.rejected: Counter[str] = Counter()  # rejected answers by kind
             self.prompt_tokens = 0
+            self.cached_prompt_tokens = 0  # of prompt_tokens, reused from the server's prefix cache
             self.completion_tokens = 0
             self.latencies: deque[float] = deque(maxlen=self._window)  # per answered HTTP call
 
@@ -81,6 +82,7 @@ class AdvisorStats:
                 "requests": self.requests, "calls": self.calls, "cache_hits": self.cache_hits,
                 "retries": self.retries, "ask_again": self.ask_again, "advice_ok": self.advice_ok,
                 "failures": sum(self.failures.values()), "prompt_tokens": self.prompt_tokens,
+                "cached_prompt_tokens": self.cached_prompt_tokens,
                 "completion_tokens": self.completion_tokens,
                 "latency_p50_s": q(0.50), "latency_p95_s": q(0.95),
             }
@@ -120,6 +122,12 @@ class LLMAdvisor:
         self._lock = threading.Lock()
         self._fatal: EndpointError | None = None  # a permanent endpoint fault: every later call raises it
         self._endpoint_ok = False  # has this endpoint ever answered with a chat completion?
+        # slot_affinity: episode (map) -> server slot, least recently used slot first to go
+        self._slot_of: OrderedDict[str, int] = OrderedDict()
+        self._slot_order: list[int] = []  # LRU first; filled from the server's /props
+        self._n_slots: int | None = None  # the server's slot count; 0: no slot affinity there
+        self._primed = False  # every slot holds the cached system prompt
+        self.on_call: Any = None  # benchmarks: called with each ChatResult (server timings)
 
     def __getstate__(self) -> dict:
         """The client, loop, server and key never travel; a copy re-creates them lazily."""
@@ -155,6 +163,8 @@ class LLMAdvisor:
             with contextlib.suppress(Exception):
                 self._loop.close()
             self._loop = self._thread = None
+        self._n_slots, self._primed, self._slot_order = None, False, []
+        self._slot_of.clear()
         if self._server_cm is not None:
             cm, self._server_cm, self._server_url, self.local_server = self._server_cm, None, None, None
             cm.__exit__(None, None, None)
@@ -199,7 +209,65 @@ class LLMAdvisor:
         return self._client, self._slots  # type: ignore[return-value]
 
     # -- request building ------------------------------------------------------------------
-    def _body(self, messages: list[dict], state: AdvisorState, attempt: int) -> dict[str, Any]:
+    async def _discover_slots(self, base_url: str) -> None:
+        """How many slots the llama.cpp server has (``/props``); 0 (affinity off) when it does
+        not say, e.g. a server that is not llama.cpp."""
+        client, _ = self._http()
+        root = base_url.rstrip("/").removesuffix("/v1")
+        n = 0
+        try:
+            r = await client.get(f"{root}/props", timeout=30)
+            if r.status_code == 200:
+                n = int(r.json().get("total_slots") or 0)
+        except (httpx.HTTPError, ValueError, TypeError, AttributeError):
+            n = 0
+        if n == 0:
+            log.info("LLM server at %s does not report its slots: slot_affinity off", base_url)
+        with self._lock:
+            self._n_slots, self._slot_order = n, list(range(n))
+
+    def _slot(self, state: AdvisorState) -> int | None:
+        """The server slot for ``state`` (slot_affinity): the one that served its episode last,
+        else the least recently used one, which forgets its previous episode."""
+        if not self.cfg.slot_affinity or not self._n_slots:
+            return None
+        with self._lock:
+            ep = episode_text(state)
+            slot = self._slot_of.get(ep)
+            if slot is None:
+                slot = self._slot_order[0]
+                for e in [e for e, s in self._slot_of.items() if s == slot]:
+                    del self._slot_of[e]
+                self._slot_of[ep] = slot
+            self._slot_order.remove(slot)
+            self._slot_order.append(slot)
+            return slot
+
+    async def _prime_slots(self, base_url: str, source: int) -> None:
+        """Copy slot ``source``'s cache (the system prompt, just evaluated) into every other slot
+        through llama.cpp's slot save/restore: a few ms each instead of evaluating the system
+        prompt once per slot. A server without it (no slot save path) is left as it is."""
+        self._primed = True
+        n = self._n_slots or 0
+        if n < 2:
+            return
+        client, _ = self._http()
+        root = base_url.rstrip("/").removesuffix("/v1")
+        name = f"uavlae-prefix-{os.getpid()}.bin"
+        try:
+            r = await client.post(f"{root}/slots/{source}?action=save", json={"filename": name}, timeout=30)
+            if r.status_code != 200:
+                raise httpx.HTTPError(f"HTTP {r.status_code}")
+            for k in range(n):
+                if k != source:
+                    r = await client.post(f"{root}/slots/{k}?action=restore", json={"filename": name}, timeout=30)
+                    if r.status_code != 200:
+                        raise httpx.HTTPError(f"HTTP {r.status_code}")
+        except httpx.HTTPError as e:
+            log.info("LLM server slots not primed (%s): each slot evaluates the system prompt once", e)
+
+    def _body(self, messages: list[dict], state: AdvisorState, attempt: int,
+              slot: int | None = None) -> dict[str, Any]:
         c = self.cfg
         temperature = c.temperature
         if attempt > 1 and c.retry_temperature is not None:
@@ -208,6 +276,8 @@ class LLMAdvisor:
                                 "top_p": c.top_p, "max_tokens": c.max_tokens, "stream": False}
         if c.seed is not None:
             body["seed"] = c.seed + attempt - 1
+        if slot is not None:
+            body["id_slot"] = slot  # llama.cpp: this slot's cache holds the episode's prefix
         v_max = state.limits.v_max
         if c.response_format == "json_schema":
             body["response_format"] = {"type": "json_schema", "json_schema": {
@@ -222,6 +292,10 @@ class LLMAdvisor:
             body["grammar"] = Template(template(gbnf)).substitute(
                 reasoning_max_chars=c.reasoning_max_chars)
         return body
+
+    def request_body(self, state: AdvisorState) -> dict[str, Any]:
+        """The first attempt's request body for ``state`` (benchmarks, debugging)."""
+        return self._body(self._messages(state), state, 1, self._slot(state))
 
     def _messages(self, state: AdvisorState) -> list[dict]:
         c = self.cfg
@@ -264,8 +338,18 @@ class LLMAdvisor:
                 else self.base_url_or_none
             url = base_url.rstrip("/") + "/chat/completions"
             uniq = list(todo.items())
-            answers = await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k)
-                                             for k, idx in uniq))
+            if self.cfg.slot_affinity and self._n_slots is None:
+                await self._discover_slots(base_url)
+            slots = [self._slot(states[idx[0]]) for _, idx in uniq]
+            answers: list = []
+            if self.cfg.slot_affinity and self._n_slots and not self._primed:
+                # the first answer fills its slot with the system prompt; then every slot gets a copy
+                k, idx = uniq[0]
+                answers.append(await self._advise_one(url, prompts[idx[0]], states[idx[0]], k, slots[0]))
+                if self._fatal is None:
+                    await self._prime_slots(base_url, slots[0])
+            answers += await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k, slot)
+                                              for (k, idx), slot in list(zip(uniq, slots))[len(answers):]))
             if self._fatal is not None:
                 raise self._fatal
             for (k, idx), a in zip(uniq, answers):
@@ -274,7 +358,7 @@ class LLMAdvisor:
         return results  # type: ignore[return-value]
 
     async def _advise_one(self, url: str, messages: list[dict], state: AdvisorState,
-                          key: str) -> Advice | AdviceFailure:
+                          key: str, slot: int | None = None) -> Advice | AdviceFailure:
         c = self.cfg
         client, slots = self._http()
         headers = {"Content-Type": "application/json"}
@@ -294,7 +378,7 @@ class LLMAdvisor:
                 return self._fail(FailureKind.HTTP_ERROR, "endpoint refused", attempt, history, quiet=True)
             try:
                 res = await chat_completion(
-                    client, url, self._body(current, state, attempt), headers, timeout_s=c.timeout_s,
+                    client, url, self._body(current, state, attempt, slot), headers, timeout_s=c.timeout_s,
                     max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
                     backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
                     max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry,
@@ -314,7 +398,9 @@ class LLMAdvisor:
                 kind, reason = e.kind, e.detail
             else:
                 self._endpoint_ok = True
-                self.stats.add(calls=1, prompt_tokens=res.prompt_tokens,
+                if self.on_call is not None:
+                    self.on_call(res)
+                self.stats.add(calls=1, prompt_tokens=res.prompt_tokens, cached_prompt_tokens=res.cached_tokens,
                                completion_tokens=res.completion_tokens)
                 with self.stats._lock:
                     self.stats.latencies.append(res.latency_s)

@@ -28,6 +28,8 @@ class ChatResult:
     prompt_tokens: int
     completion_tokens: int
     latency_s: float
+    timings: dict | None = None  # llama.cpp's own: cache_n, prompt_n, prompt_ms, predicted_n, predicted_ms
+    cached_tokens: int = 0  # prompt tokens the server reused from its prefix cache
 
 
 class RequestFailed(Exception):
@@ -121,12 +123,15 @@ async def _post_once(client: httpx.AsyncClient, url: str, body: dict, headers: d
         raise PermanentFailure(r.status_code, f"HTTP {r.status_code} with a body that is not an OpenAI chat "
                                f"completion ({type(e).__name__}): {raw[:120].decode('utf-8', 'replace')!r}") from None
     usage = data.get("usage") or {}
+    details = usage.get("prompt_tokens_details") if isinstance(usage, dict) else None
     return ChatResult(
         text=text if isinstance(text, str) else None,
         finish_reason=finish if isinstance(finish, str) else None,
         prompt_tokens=int(usage.get("prompt_tokens") or 0),
         completion_tokens=int(usage.get("completion_tokens") or 0),
+        cached_tokens=int((details or {}).get("cached_tokens") or 0) if isinstance(details, dict) else 0,
         latency_s=latency,
+        timings=data.get("timings") if isinstance(data.get("timings"), dict) else None,
     )
 
 

