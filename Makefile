@@ -62,11 +62,6 @@ bench-env-ab: $(STAMP)
 bench-env-breakdown: $(STAMP)
 	$(BIN)/python benchmarks/env_breakdown.py
 
-# The C random draws and the sampler's C kernels, on and off -> benchmarks/ckernels_ab.json
-.PHONY: bench-ckernels
-bench-ckernels: $(STAMP)
-	$(BIN)/python benchmarks/ckernels_ab.py
-
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 

@@ -6,12 +6,12 @@ SPEC.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.9
 ``"observation"``, ``"action"``, ``("next", "observation")``, ``("next", "reward")``,
 ``("next", "done")``, ``("next", "terminated")`` and does one gradient step on actor, both Q
 nets and log(alpha) (one fused Adam, a parameter group each), then one soft update of the target
-Q nets (one ``torch._foreach_lerp_``).
+Q nets (a ``lerp_`` per parameter).
 
 The gradients come from ``SACLoss`` itself (``loss_impl: torchrl``: its forward, then autograd)
 or, by default, from :class:`uavlae.algos.sac_fused.FusedSACGrad` (``loss_impl: fused``): the
-same losses and gradients of the same parameters, written out as plain tensor ops, ~3x the
-updates/s on one CPU thread. Speed and its measurement: benchmarks/sac_update_speed.md.
+same losses and gradients of the same parameters, written out as plain tensor ops (its speed:
+docs/performance.md).
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from uavlae.algos.common import (
     StrictConfig,
     apply_gradients,
-    fused_adam_step,
     load_parts_state_dict,
     optimiser_step,
     parse_config,
@@ -104,7 +103,7 @@ class SAC:
     actor: ProbabilisticActor  # the acting policy; shares its parameters with ``loss``
     loss: SACLoss
     optimisers: dict[str, torch.optim.Optimizer]  # {"sac": Adam with groups actor/critic/alpha}
-    target_updater: SoftUpdate  # owns the source/target pairing; stepped by one foreach call
+    target_updater: SoftUpdate  # owns the source/target pairing and tau
     num_updates: int = 0
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
@@ -112,12 +111,10 @@ class SAC:
     _targets: list = field(default_factory=list, repr=False)
     _tau: float = field(default=0.0, repr=False)
     _fused: FusedSACGrad | None = field(default=None, repr=False)
-    _group_index: list = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
-        # Only the loss is compiled. Compiling the whole update too (backward, Adam, the target
-        # lerp) measured slower (benchmarks/sac_update_speed.md): the fused Adam and the foreach
-        # lerp are already one kernel call each, and more graphs mean more guard checks.
+        # Only the loss is compiled: the fused Adam is already one kernel per group, and more
+        # graphs mean more guard checks.
         self._loss_fn = compile_loss(self.loss, self.cfg.compile_simdlen) if self.cfg.compile else self.loss
         self._in_keys = list(self.loss.in_keys)
         # SoftUpdate(SACLoss) pairs the Q nets' parameters with their targets, leaf by leaf; the
@@ -128,30 +125,26 @@ class SAC:
             self._targets.append(target.get(key).data)
         self._tau = 1.0 - self.target_updater.eps  # SoftUpdate's own weight, bit for bit
         if self.cfg.loss_impl == "fused":
-            self._fused = FusedSACGrad(self.loss, self.cfg.activation)
-            order = {id(p): i for i, p in enumerate(self._fused.params)}
+            box = self.actor.spec["action"].space
+            self._fused = FusedSACGrad(self.loss, self.cfg.activation, box.low, box.high)
             groups = self.optimisers["sac"].param_groups
-            if sorted(order) != sorted(id(p) for g in groups for p in g["params"]):
+            if sorted(map(id, self._fused.params)) != sorted(id(p) for g in groups for p in g["params"]):
                 raise RuntimeError("the optimiser's parameters are not the loss's")  # make_sac bug
-            self._group_index = [[order[id(p)] for p in g["params"]] for g in groups]
 
     def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self._fused is not None:
             out, grads = self._fused.grads(batch)
-            opt = self.optimisers["sac"]
-            if self.cfg.max_grad_norm is None and fused_adam_step(opt, grads, self._group_index):
-                norms = {}
-            else:
-                for p, g in zip(self._fused.params, grads):
-                    p.grad = g
-                norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
+            for p, g in zip(self._fused.params, grads):
+                p.grad = g
+            norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
         else:
             out = self._loss_fn(batch)
             total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
             norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
         with torch.no_grad():
-            # SoftUpdate: target <- target + tau (source - target), every pair in one call
-            torch._foreach_lerp_(self._targets, self._sources, self._tau)
+            # SoftUpdate: target <- target + tau (source - target)
+            for target, source in zip(self._targets, self._sources):
+                target.lerp_(source, self._tau)
         logs = {k: out[k].detach() for k in _LOG_KEYS}
         logs.update((k, v.detach()) for k, v in norms.items())
         return logs
