@@ -16,8 +16,9 @@ Two streams of triggered states, both with the advice cache off:
 - ``fresh``: the first saved states of ``benchmarks/advice_states.pt``, each from another
   episode: only the system prompt is a reusable prefix (the worst case).
 
-``--part settings``: one server per setting (threads, batch/micro-batch, flash attention, the
-RAM prompt cache, parallel slots), the same calls on each. ``--part concurrency``: n parallel
+``--part settings``: one server per setting (threads, batch/micro-batch, flash attention, slots
+and slot affinity, the output format, the earlier default), all running at once, the calls
+interleaved state by state so that the machine's load hits every setting alike. ``--part concurrency``: n parallel
 slots with n requests in flight (continuous batching), answered calls/s for n = 1, 4, 8, 16.
 Results merge into ``benchmarks/llm_call_breakdown.json`` with the machine.
 
@@ -28,6 +29,7 @@ Results merge into ``benchmarks/llm_call_breakdown.json`` with the machine.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -139,49 +141,68 @@ def summarise(calls: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
-def run_stream(adv: LLMAdvisor, states: list, free_decode: bool) -> dict[str, Any]:
-    seen: list = []
-    adv.on_call = seen.append
-    calls = [advised_call(adv, s, seen) for s in states]
-    out: dict[str, Any] = {"summary": summarise(calls), "calls": calls}
-    if free_decode:  # the same prompts (now fully cached), as many tokens, no grammar: decoding alone
-        url = adv.base_url_or_none.rstrip("/") + "/chat/completions"
-        free = []
-        with httpx.Client() as client:
-            for s, c in zip(states, calls):
-                body = dict(adv.request_body(s), max_tokens=int(c["predicted_n"]), ignore_eos=True)
-                body.pop("grammar", None)
-                body.pop("response_format", None)
-                free.append(one_call(client, url, body))
-        ms_c = sum(c["predicted_ms"] for c in calls) / sum(c["predicted_n"] for c in calls)
-        ms_f = sum(c["predicted_ms"] for c in free) / sum(c["predicted_n"] for c in free)
-        out["constrained_decoding"] = {"ms_per_token_constrained": ms_c, "ms_per_token_free": ms_f,
-                                       "overhead_ms_per_call": (ms_c - ms_f) * out["summary"]["mean_predicted_n"]}
-    return out
+def free_decode_call(adv: LLMAdvisor, state: Any, n_tokens: int) -> dict[str, float]:
+    """The state's prompt (now fully cached in its slot) decoded freely for as many tokens."""
+    url = adv.base_url_or_none.rstrip("/") + "/chat/completions"
+    body = dict(adv.request_body(state), max_tokens=n_tokens, ignore_eos=True)
+    body.pop("grammar", None)
+    body.pop("response_format", None)
+    with httpx.Client() as client:
+        return one_call(client, url, body)
 
 
 def part_settings(args, limits, base_cfg, streams, fresh) -> dict[str, Any]:
-    res: dict[str, Any] = {}
-    for name in args.settings:
-        cfg = make_llm_config(base_cfg, **SETTINGS[name])
-        with LLMAdvisor(cfg) as adv:
+    """Every setting's server at once (idle ones sleep), the calls interleaved: state by state,
+    each setting answers in turn, so a change in the machine's load hits all of them alike."""
+    names = list(args.settings)
+    with contextlib.ExitStack() as stack:
+        advs = {}
+        for name in names:
+            adv = stack.enter_context(LLMAdvisor(make_llm_config(base_cfg, **SETTINGS[name])))
             # one call outside the measurement starts the server, caches the system prompt and
             # primes the slots, as the first call of a run does
             adv.advise_sync(fresh[-1:])
-            entry: dict[str, Any] = {"overrides": SETTINGS[name]}
-            for sname, states in streams.items():
-                entry[sname] = run_stream(adv, states, free_decode=(name == "default" and sname == "fresh"))
-            res[name] = entry
+            seen: list = []
+            adv.on_call = seen.append
+            advs[name] = (adv, seen)
+        calls: dict[str, dict[str, list]] = {n: {k: [] for k in streams} for n in names}
+        free: list[tuple[dict, dict]] = []
+        for sname, states in streams.items():
+            for s in states:
+                for name in names:
+                    adv, seen = advs[name]
+                    c = advised_call(adv, s, seen)
+                    calls[name][sname].append(c)
+                    if name == "default" and sname == "fresh":  # constrained, then free, same prompt
+                        free.append((c, free_decode_call(adv, s, int(c["predicted_n"]))))
+    res: dict[str, Any] = {}
+    for name in names:
+        entry: dict[str, Any] = {"overrides": SETTINGS[name]}
+        for sname in streams:
+            entry[sname] = {"summary": summarise(calls[name][sname]), "calls": calls[name][sname]}
+        res[name] = entry
         s, f = entry["rollout"]["summary"], entry["fresh"]["summary"]
         print(f"{name:22s} rollout p50 {s['p50_s']:.2f} s (new prompt {s['mean_prompt_n']:.0f} tok, reused "
               f"{s['mean_cache_n']:.0f}, decoded {s['mean_predicted_n']:.0f})  fresh p50 {f['p50_s']:.2f} s "
               f"(new prompt {f['mean_prompt_n']:.0f} tok)  prompt {f['prompt_tok_per_s']:.0f} tok/s, decode "
               f"{f['decode_tok_per_s']:.0f} tok/s", flush=True)
+    if free:
+        ms_c = sum(c["predicted_ms"] for c, _ in free) / sum(c["predicted_n"] for c, _ in free)
+        ms_f = sum(f["predicted_ms"] for _, f in free) / sum(f["predicted_n"] for _, f in free)
+        n_dec = sum(c["predicted_n"] for c, _ in free) / len(free)
+        res["default"]["constrained_decoding"] = {
+            "ms_per_token_constrained": ms_c, "ms_per_token_free": ms_f,
+            "overhead_ms_per_call": (ms_c - ms_f) * n_dec, "free_calls": [f for _, f in free]}
+        print(f"constrained decoding: {ms_c:.1f} ms/token with the grammar, {ms_f:.1f} free", flush=True)
+    if "default" in res:
+        d = res["default"]
+        for name in names:
+            if name != "default":
+                res[name]["p50_vs_default"] = {k: res[name][k]["summary"]["p50_s"] / d[k]["summary"]["p50_s"]
+                                               for k in streams}
     if "default" in res and "previous_default" in res:
-        res["speedup_p50_rollout"] = (res["previous_default"]["rollout"]["summary"]["p50_s"]
-                                      / res["default"]["rollout"]["summary"]["p50_s"])
-        res["speedup_p50_fresh"] = (res["previous_default"]["fresh"]["summary"]["p50_s"]
-                                    / res["default"]["fresh"]["summary"]["p50_s"])
+        res["speedup_p50_rollout"] = res["previous_default"]["p50_vs_default"]["rollout"]
+        res["speedup_p50_fresh"] = res["previous_default"]["p50_vs_default"]["fresh"]
         print(f"p50 previous/default: rollout x{res['speedup_p50_rollout']:.2f}, fresh x{res['speedup_p50_fresh']:.2f}")
     return res
 
@@ -214,7 +235,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", choices=["settings", "concurrency"], required=True)
     ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
-    ap.add_argument("--rollout-calls", type=int, default=16)
+    ap.add_argument("--rollout-calls", type=int, default=40, help="make run asks about 40 in 1024 frames")
     ap.add_argument("--fresh-calls", type=int, default=6)
     ap.add_argument("--in-flight", type=int, nargs="+", default=[1, 4, 8, 16])
     ap.add_argument("--concurrency-states", type=int, default=16)
@@ -238,10 +259,9 @@ def main() -> None:
         fresh = fresh_states(args.fresh_calls + 1, limits)  # the last one warms the server up
         streams = {"rollout": rollout_states(args.rollout_calls, limits, d_th=15.0), "fresh": fresh[:-1]}
         res = part_settings(args, limits, base_cfg, streams, fresh)
-        merged = results.setdefault("settings", {})
-        for name, entry in res.items():
-            if isinstance(entry, dict):
-                merged[name] = {"command": cmd, "machine": machine, **entry}
+        # one entry per run (its settings side by side): every ratio is from one run
+        results.setdefault("settings", {})["+".join(args.settings)] = {"command": cmd, "machine": machine,
+                                                                      "results": res}
         if "speedup_p50_rollout" in res:  # default and previous_default measured side by side
             results["headline"] = {
                 "command": cmd, "machine": machine,

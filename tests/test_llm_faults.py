@@ -445,3 +445,54 @@ def test_slot_affinity_is_off_where_the_server_reports_no_slots():
 
     (a,), _ = run(server, slot_affinity=True)
     assert a.ok
+
+
+def test_a_training_run_with_a_rejected_key_stops_at_its_first_call(tmp_path, monkeypatch):
+    """The whole run (train.run, as `python -m uavlae.train` calls it) against an endpoint that
+    answers 401: it raises one EndpointError at the first LLM call, naming the endpoint and the
+    key's variable, never the key; nothing falls back silently."""
+    import http.server
+
+    from hydra import compose, initialize_config_dir
+
+    from uavlae.factories import CONF_DIR
+    from uavlae.llm import EndpointError
+    from uavlae.train import run as train_run
+
+    hits = []
+
+    class Refuse(http.server.BaseHTTPRequestHandler):
+        def do_POST(self):  # noqa: N802
+            hits.append(self.path)
+            self.rfile.read(int(self.headers.get("content-length", 0)))
+            body = b'{"error": {"message": "Incorrect API key provided", "code": "invalid_api_key"}}'
+            self.send_response(401)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Refuse)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{srv.server_address[1]}/v1"
+    tiny = ["trainer.total_frames=8", "trainer.env_batch_size=2", "trainer.frames_per_batch=8",
+            "trainer.init_random_frames=0", "trainer.batch_size=2", "trainer.replay_capacity=64",
+            "trainer.eval_episodes=1", "trainer.eval_max_steps=3", "trainer.eval_every_frames=0",
+            "trainer.checkpoint_every_frames=0", "trainer.progress_bar=false", "logger.wandb.mode=disabled"]
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=["+exp=sac_llm", f"run_dir={tmp_path / 'run'}", *tiny,
+                                               "llm=openai_compatible", f"llm.base_url={url}",
+                                               "llm.api_key_env=UAVLAE_TEST_KEY", "llm.cache_mode=off",
+                                               "advisor.d_th=1000.0"])
+        with pytest.raises(EndpointError) as info:
+            train_run(cfg)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    msg = str(info.value)
+    assert url in msg and "UAVLAE_TEST_KEY" in msg and KEY not in msg
+    assert 1 <= len(hits) <= 2  # the first request (two rows in flight at most), then the stop

@@ -88,7 +88,7 @@ def test_slot_affinity_keeps_each_episodes_prefix_cached():
     a2 = dataclasses.replace(a, position=(a.position[0] + 3.0, a.position[1] - 2.0))
     reused = {}
     with local_server(n_threads=1, n_parallel=2, ctx_per_slot=2048) as srv:
-        for affinity in (True, False):
+        for affinity in (False, True):  # without first: a fresh server, no leftover prompts
             calls = []
             cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity)
             with LLMAdvisor(cfg, base_url=srv.base_url) as adv:
