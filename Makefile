@@ -65,6 +65,26 @@ bench-env-breakdown: $(STAMP)
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 
+# Where an advice call's time goes (the server's own timings), what each server setting buys,
+# and answered calls/s at 1, 4, 8, 16 in flight -> benchmarks/llm_call_breakdown.json
+.PHONY: bench-llm-breakdown
+bench-llm-breakdown: $(STAMP)
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings default previous_default \
+		one_slot_no_affinity json_schema
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings threads_2 ubatch_128 \
+		batch_ubatch_64 flash_attn_on flash_attn_off
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part concurrency
+
+# What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics
+# -> benchmarks/advice_quality.json and .md (the LLM runs take about 15 min on one core each;
+# ADVICE_ARGS="--advisors actor --actor FILE.pt2" scores a trained actor on the same states)
+.PHONY: bench-advice
+ADVICE_ARGS ?= --advisors heuristic hover random llm llm_verbose
+bench-advice: $(STAMP)
+	$(BIN)/python benchmarks/advice_quality.py $(ADVICE_ARGS)
+	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_no_safety llm_no_compliance llm_no_data \
+		llm_no_energy
+
 # What copying the ego direction column earns with no learning -> benchmarks/follow_direction.json
 .PHONY: bench-follow
 bench-follow: $(STAMP)

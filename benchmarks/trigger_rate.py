@@ -12,7 +12,8 @@ anyone: the flying policy is never overridden, so no LLM call is made. From the 
 the benchmark counts the calls SAC+LLM would make per 1000 frames with ``advisor.hold_steps``
 1 (the paper: every triggered slot) and 4 (a row asks at the first slot of each run of
 triggered slots within an episode, then every 4th), and which obstacle kind was within
-``d_th`` (a slot can have several). Writes ``trigger_rate.json``.
+``d_th`` (the env's raw distances; a slot can have several; the trigger itself counts an OU only
+within the perception radius). Writes ``trigger_rate.json``.
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def calls_with_hold(trig: torch.Tensor, step: torch.Tensor, hold: int) -> int:
     return calls
 
 
-def fly(name: str, policy, env, d_th: float, steps: int, seed: int) -> dict:
+def fly(name: str, policy, env, trigger, d_th: float, steps: int, seed: int) -> dict:
+    """``trigger``: an OverridePolicy whose ``trigger(td)`` is asked, never its advisor."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
     env.set_seed(seed)
@@ -65,7 +67,7 @@ def fly(name: str, policy, env, d_th: float, steps: int, seed: int) -> dict:
             close = d <= d_th
             for i, k in enumerate(KINDS):
                 near[k] += int(close[:, i].sum())
-            trig.append(close.any(-1))
+            trig.append(trigger.trigger(td).clone())
             step.append(td.get(("state", "step")).reshape(-1).clone())
             td = env.step(policy(td))
             episodes += int(td.get(("next", "done")).sum())
@@ -100,6 +102,7 @@ def main() -> None:
     from uavlae.factories import behaviour_actor, dump_json, make_env, make_learner
     from uavlae.machine import describe_machine
     from uavlae.policies.heuristic import HeuristicPolicy
+    from uavlae.policies.override import HeuristicAdvisor, OverridePolicy
 
     conf = ROOT / "conf"
     env_cfg = make_env_config(OmegaConf.load(conf / "env" / "default.yaml"))
@@ -116,7 +119,10 @@ def main() -> None:
         "untrained_sac_actor": behaviour_actor(learner),
         "uniform_random": _UniformRandom(env.action_spec, generator),
     }
-    results = {name: fly(name, p, env, d_th, steps, args.seed) for name, p in policies.items()}
+    # the override's own trigger (conf/advisor/llm.yaml, the env's perception radius for OUs)
+    trigger = OverridePolicy(heuristic, HeuristicAdvisor(heuristic), mode="proximity", d_th=d_th,
+                             perception_radius=env_cfg.safety.perception_radius)
+    results = {name: fly(name, p, env, trigger, d_th, steps, args.seed) for name, p in policies.items()}
     h, u = results["heuristic"], results["untrained_sac_actor"]
     out = {
         "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),

@@ -20,7 +20,7 @@ import httpx
 import pytest
 
 from uavlae.llm import (
-    Advice, AdviceCache, AdviceFailure, CacheMissError, FailureKind, LLMAdvisor, WorldLimits,
+    Advice, AdviceCache, AdviceFailure, CacheMissError, EndpointError, FailureKind, LLMAdvisor, WorldLimits,
     example_states, make_llm_config,
 )
 
@@ -185,10 +185,51 @@ def test_429_retry_after_is_capped():
 
 
 def test_4xx_is_not_retried_and_the_key_is_redacted():
-    h = Script(lambda r: httpx.Response(401, text=f"bad key {r.headers['authorization']}"))
+    h = Script(lambda r: httpx.Response(400, text=f"context too long {r.headers['authorization']}"))
     (f,), _ = run(h)
     assert f.kind is FailureKind.HTTP_ERROR and len(h.requests) == 1
     assert KEY not in f.detail and "***" in f.detail and KEY not in repr(f)
+
+
+@pytest.mark.parametrize("response,why", [
+    (lambda r: httpx.Response(401, text=f"bad key {r.headers['authorization']}"), "rejected the API key"),
+    (lambda r: httpx.Response(403, text="forbidden"), "rejected the API key"),
+    (lambda r: httpx.Response(404, text="The model `smol` does not exist."), "does not serve model"),
+    (lambda r: httpx.Response(405, text="method not allowed"), "does not serve model"),
+    (lambda r: httpx.Response(400, json={"error": {"message": "Model Not Exist"}}), "does not serve model"),
+    (lambda r: httpx.Response(200, text="<html>welcome to nginx</html>"), "not an OpenAI-compatible server"),
+    (lambda r: httpx.Response(200, json={"models": ["a"]}), "not an OpenAI-compatible server"),
+])
+def test_permanent_endpoint_faults_stop_at_once_with_one_message(response, why, caplog):
+    h = Script(response)
+    adv = LLMAdvisor(cfg(max_concurrency=2), transport=httpx.MockTransport(h))
+    try:
+        with pytest.raises(EndpointError) as info:
+            adv.advise_sync(STATES, timeout=50)  # 8 states, 2 in flight
+        msg = str(info.value)
+        assert "http://127.0.0.1:9/v1/chat/completions" in msg and "UAVLAE_TEST_KEY" in msg and why in msg
+        assert KEY not in msg and KEY not in repr(info.value)
+        sent = len(h.requests)
+        assert sent <= 2  # the two in flight at most; none of the six queued ones was sent
+        with pytest.raises(EndpointError):  # every later call stops too, without asking
+            adv.advise_sync(STATES[:1], timeout=50)
+        assert len(h.requests) == sent
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]  # no warning per state
+    finally:
+        adv.close()
+
+
+def test_a_stray_non_completion_after_good_answers_is_asked_again():
+    """An endpoint that has served chat completions is OpenAI-compatible: a later odd 200 (a
+    proxy's error page) is a bad answer, asked again, not a reason to stop the run."""
+    h = Script(GOOD, *([lambda r: httpx.Response(200, text="<html>gateway</html>")] * 3), GOOD)
+    adv = LLMAdvisor(cfg(), transport=httpx.MockTransport(h))
+    try:
+        (a,) = adv.advise_sync(STATES[:1], timeout=50)
+        (b,) = adv.advise_sync(STATES[1:2], timeout=50)
+    finally:
+        adv.close()
+    assert a.ok and b.ok and b.attempts == 4 and len(h.requests) == 5
 
 
 def test_truncated_json_asks_again_at_most_max_attempts():
@@ -216,7 +257,6 @@ def test_bad_answers_then_valid():
     ('{"vx": 9, "vy": 9, "Confidence": 1, "Reasoning": ""}', FailureKind.OVER_SPEED),
     (lambda r: httpx.Response(200, content=b'{"choices": [{"message": {"content": "' + b"a" * 10_000_000 + b'"}}]}'),
      FailureKind.TOO_LARGE),
-    (lambda r: httpx.Response(200, text="<html>gateway</html>"), FailureKind.INVALID_JSON),
 ])
 def test_bad_answers_forever_are_bounded(step, kind):
     h = Script(step)
@@ -362,3 +402,97 @@ def test_cache_is_much_cheaper_than_a_call(tmp_path):
     per_hit = (time.perf_counter() - t0) / 20
     adv.close()
     assert r.source == "cache" and per_hit < 0.2 / 50
+
+
+def test_slot_affinity_sends_each_episode_to_its_slot_lru():
+    """Two slots, episodes E1 E2 E1 E3 E2: slots 0 1 0 1 0 (E3 takes the least recently used
+    slot, 1, forgetting E2; E2 then takes slot 0). After the first answer slot 0's cache is
+    saved and restored into slot 1."""
+    import dataclasses
+
+    base = STATES[:3]
+    seq = [base[0], base[1], dataclasses.replace(base[0], position=(1.0, 2.0)), base[2],
+           dataclasses.replace(base[1], position=(3.0, 4.0))]
+    seen, admin = [], []
+
+    def server(r: httpx.Request) -> httpx.Response:
+        if r.url.path == "/props":
+            return httpx.Response(200, json={"total_slots": 2})
+        if r.url.path.startswith("/slots/"):
+            admin.append((r.url.path, r.url.params["action"], json.loads(r.content)["filename"]))
+            return httpx.Response(200, json={})
+        seen.append(json.loads(r.content)["id_slot"])
+        return httpx.Response(200, json=completion(json.dumps(GOOD)))
+
+    adv = LLMAdvisor(cfg(slot_affinity=True), transport=httpx.MockTransport(server))
+    try:
+        for s in seq:
+            (a,) = adv.advise_sync([s], timeout=50)
+            assert a.ok
+    finally:
+        adv.close()
+    assert seen == [0, 1, 0, 1, 0]
+    assert [(p, act) for p, act, _ in admin] == [("/slots/0", "save"), ("/slots/1", "restore")]
+    assert admin[0][2] == admin[1][2]
+
+
+def test_slot_affinity_is_off_where_the_server_reports_no_slots():
+    def server(r: httpx.Request) -> httpx.Response:
+        if r.url.path == "/props":
+            return httpx.Response(404, text="no such route")
+        assert "id_slot" not in json.loads(r.content)
+        return httpx.Response(200, json=completion(json.dumps(GOOD)))
+
+    (a,), _ = run(server, slot_affinity=True)
+    assert a.ok
+
+
+def test_a_training_run_with_a_rejected_key_stops_at_its_first_call(tmp_path, monkeypatch):
+    """The whole run (train.run, as `python -m uavlae.train` calls it) against an endpoint that
+    answers 401: it raises one EndpointError at the first LLM call, naming the endpoint and the
+    key's variable, never the key; nothing falls back silently."""
+    import http.server
+
+    from hydra import compose, initialize_config_dir
+
+    from uavlae.factories import CONF_DIR
+    from uavlae.llm import EndpointError
+    from uavlae.train import run as train_run
+
+    hits = []
+
+    class Refuse(http.server.BaseHTTPRequestHandler):
+        def do_POST(self):  # noqa: N802
+            hits.append(self.path)
+            self.rfile.read(int(self.headers.get("content-length", 0)))
+            body = b'{"error": {"message": "Incorrect API key provided", "code": "invalid_api_key"}}'
+            self.send_response(401)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Refuse)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{srv.server_address[1]}/v1"
+    tiny = ["trainer.total_frames=8", "trainer.env_batch_size=2", "trainer.frames_per_batch=8",
+            "trainer.init_random_frames=0", "trainer.batch_size=2", "trainer.replay_capacity=64",
+            "trainer.eval_episodes=1", "trainer.eval_max_steps=3", "trainer.eval_every_frames=0",
+            "trainer.checkpoint_every_frames=0", "trainer.progress_bar=false", "logger.wandb.mode=disabled"]
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=["+exp=sac_llm", f"run_dir={tmp_path / 'run'}", *tiny,
+                                               "llm=openai_compatible", f"llm.base_url={url}",
+                                               "llm.api_key_env=UAVLAE_TEST_KEY", "llm.cache_mode=off",
+                                               "advisor.d_th=1000.0"])
+        with pytest.raises(EndpointError) as info:
+            train_run(cfg)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    msg = str(info.value)
+    assert url in msg and "UAVLAE_TEST_KEY" in msg and KEY not in msg
+    assert 1 <= len(hits) <= 2  # the first request (two rows in flight at most), then the stop

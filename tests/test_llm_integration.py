@@ -74,3 +74,30 @@ def test_autostart_owns_and_stops_its_server(tmp_path):
     assert isinstance(r, Advice)
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_slot_affinity_keeps_each_episodes_prefix_cached():
+    """Episodes A, B, then A again one slot later: with affinity A's second call finds its map
+    and GEs cached in its own slot; B's first call finds the system prompt copied into its slot
+    (not evaluated again). Without affinity the one most similar slot serves everyone."""
+    import dataclasses
+
+    from uavlae.llm import example_states
+
+    a, b = example_states(2, LIM, seed=11)
+    a2 = dataclasses.replace(a, position=(a.position[0] + 3.0, a.position[1] - 2.0))
+    reused = {}
+    with local_server(n_threads=1, n_parallel=2, ctx_per_slot=2048) as srv:
+        for affinity in (False, True):  # without first: a fresh server, no leftover prompts
+            calls = []
+            cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity)
+            with LLMAdvisor(cfg, base_url=srv.base_url) as adv:
+                adv.on_call = calls.append
+                for s in (a, b, a2):
+                    (r,) = adv.advise_sync([s], timeout=240)
+                    assert isinstance(r, Advice), r
+            reused[affinity] = [c.timings["cache_n"] for c in calls]
+    on, off = reused[True], reused[False]
+    assert on[1] >= 400  # the ~480-token system prompt, restored into slot 1, not evaluated
+    assert on[2] >= on[1] + 100  # A's zones and GEs (11+ GEs of 8+ tokens each) came back too
+    assert off[2] < on[2] - 100  # without affinity B's call had overwritten A's prefix

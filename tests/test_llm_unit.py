@@ -36,7 +36,7 @@ def _state(**kw) -> AdvisorState:
 
 # -- prompt -------------------------------------------------------------------------------------
 def test_prompt_has_three_parts_and_the_observation():
-    sys_msg, user = build_messages(_state())
+    sys_msg, user = build_messages(_state(), observation="verbose")
     assert sys_msg["role"] == "system" and user["role"] == "user"
     s = sys_msg["content"]
     assert s.index("(a)") < s.index("(b)") < s.index("(c)")
@@ -49,6 +49,57 @@ def test_prompt_has_three_parts_and_the_observation():
         assert frag in u, frag
 
 
+def test_compact_observation_lists_only_the_papers_items_static_lines_first():
+    far = OtherUAV(130, 200, 1, 1, 30.0)  # beyond the 20 m perception radius: not visible
+    sys_msg, user = build_messages(_state(position=(100.4, 199.6), velocity=(3.04, -1.06),
+                                          ous=(OtherUAV(110, 205, 2, 0, 11.2), far)))
+    u = user["content"].splitlines()
+    assert u == ["Landing area (475,0,500,25).", "Buildings (BZ): (50,50,150,120)", "NFZs: (200,200,300,330)",
+                 "RZs: (90,190,160,260)", "GEs with remaining data (x, y, data): (120,300,2.1)",
+                 "Visible OUs (x, y, vx, vy): (110,205,2.0,0)",
+                 "DCU position (100, 200) m, velocity (3.0, -1.1) m/s, inside an RZ."]
+    s = sys_msg["content"]
+    assert "(Reasoning at most 40 characters)" in s and '{"vx":4.2,"vy":1.6,"Confidence":0.9,' in s
+    assert "energy left" not in s and "energy" not in user["content"]
+    # the system message is one exact prefix for every state and slot
+    other = build_messages(_state(position=(300.0, 10.0), bz=(), ges=()))
+    assert other[0]["content"] == s
+
+
+def test_ou_distance_line_and_list_keep_only_visible_ous():
+    """The env's d_ou counts every OU (reward r2); the prompt quotes only those within the radius."""
+    far = OtherUAV(130, 200, 1, 1, 30.0)
+    u = build_messages(_state(ous=(far,), d_ou=30.0), observation="verbose")[1]["content"]
+    assert "OU none" in u and "(x, y, vx, vy): none" in u
+    u = build_messages(_state(ous=(OtherUAV(110, 205, 2, 0, 11.2), far), d_ou=11.2),
+                       observation="verbose")[1]["content"]
+    assert "OU 11.2" in u and "130.0" not in u
+
+
+def test_unknown_observation_style_is_an_error():
+    with pytest.raises(ValueError, match="observation"):
+        build_messages(_state(), observation="terse")
+    with pytest.raises(ValueError, match="observation"):
+        make_llm_config("local", observation="terse")
+
+
+def test_rounded_state_key_merges_near_states_only():
+    from uavlae.llm import rounded_state
+
+    a = _state(position=(100.4, 199.6), velocity=(3.04, -0.96))
+    b = _state(position=(100.9, 200.4), velocity=(3.1, -0.9))
+    c = _state(position=(103.2, 200.0), velocity=(3.0, -1.0))
+    ra, rb, rc = (rounded_state(s, 2.0) for s in (a, b, c))
+    assert ra.position == rb.position == (100.0, 200.0) and ra.velocity == rb.velocity == (4.0, 0.0)
+    assert rc.position == (104.0, 200.0) and rounded_state(a, None) is a
+    assert str(ra.velocity[1]) == "0.0"  # no -0.0 in a key
+    adv_on = LLMAdvisor(make_llm_config("local", cache_mode="off", cache_key_round=2.0))
+    adv_off = LLMAdvisor(make_llm_config("local", cache_mode="off"))
+    key = lambda adv, s: adv._key(adv._messages(rounded_state(s, adv.cfg.cache_key_round)), s)  # noqa: E731
+    assert key(adv_on, a) == key(adv_on, b) != key(adv_on, c)
+    assert key(adv_off, a) != key(adv_off, b)
+
+
 def test_prompt_numbers_come_from_the_limits():
     lim = WorldLimits(x_size=800, y_size=600, v_max=12.5, v_limit=4, perception_radius=35,
                       landing=(0, 0, 30, 30), e_limit=5e5)
@@ -58,7 +109,7 @@ def test_prompt_numbers_come_from_the_limits():
 
 
 def test_empty_lists_and_inf_distances_read_none():
-    u = build_messages(_state(ges=(), ous=(), bz=(), d_ou=math.inf, d_bz=math.inf))[1]["content"]
+    u = build_messages(_state(ges=(), ous=(), bz=(), d_ou=math.inf, d_bz=math.inf), observation="verbose")[1]["content"]
     assert "(x, y, data): none" in u and "(x, y, vx, vy): none" in u and "building none" in u
 
 
@@ -227,7 +278,8 @@ def test_converter_follows_the_contract():
     (s1,) = advisor_states_from_tensordict(td, mask, LIM)
     assert [(o.x, o.y) for o in s1.ous] == [(100.0, 119.0)] and not s1.in_rz
     assert advisor_states_from_tensordict(td, [], LIM) == []
-    assert "(100.0,119.0,1.0,1.0)" in build_messages(s1)[1]["content"]
+    assert "(100.0,119.0,1.0,1.0)" in build_messages(s1, observation="verbose")[1]["content"]
+    assert "(100,119,1.0,1.0)" in build_messages(s1)[1]["content"]
 
 
 def test_package_imports_nothing_else_of_uavlae():

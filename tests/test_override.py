@@ -449,3 +449,37 @@ def test_begin_sends_the_advice_and_the_actor_acts_in_finish():
     assert adv.rows == [[0, 3]]
     assert out["action"][:, 0].tolist() == pytest.approx([0.1, -0.5, -0.5, 0.1])
     assert out["action_source"].tolist() == [LLM, POLICY, POLICY, LLM]
+
+
+def test_ous_beyond_the_perception_radius_do_not_trigger():
+    """With d_th above the perception radius, an OU at 22 m (unseen) triggers nothing, one at
+    18 m (seen) does; buildings still trigger at any distance up to d_th."""
+    d = dict(d_bz=[INF, INF, 24.0], d_nfz=[INF] * 3, d_rz=[INF] * 3, d_ou=[22.0, 18.0, INF])
+    blind = OverridePolicy(const_actor(), RecordingAdvisor(), mode="proximity", d_th=25.0)
+    seeing = OverridePolicy(const_actor(), RecordingAdvisor(), mode="proximity", d_th=25.0,
+                            perception_radius=20.0)
+    assert blind.trigger(batch(**d)).tolist() == [True, True, True]
+    assert seeing.trigger(batch(**d)).tolist() == [False, True, True]
+
+
+def test_a_rejected_key_stops_the_policy_with_one_message(monkeypatch):
+    import httpx
+
+    from uavlae.llm import EndpointError, LLMAdvisor, make_llm_config
+
+    monkeypatch.setenv("UAVLAE_TEST_KEY", "sk-never-shown")
+    env, td = _env_rows()
+    sent = []
+
+    def refuse(request):
+        sent.append(request)
+        return httpx.Response(401, text="invalid api key")
+
+    llm = LLMAdvisor(make_llm_config("openai_compatible", base_url="http://10.0.0.1:8000/v1", cache_mode="off",
+                                     api_key_env="UAVLAE_TEST_KEY", max_concurrency=4),
+                     transport=httpx.MockTransport(refuse))
+    pol = OverridePolicy(const_actor(), LLMAdvisorAdapter(llm, env.cfg), mode="always", fallback="policy")
+    with pytest.raises(EndpointError, match=r"http://10\.0\.0\.1:8000/v1.*UAVLAE_TEST_KEY") as info:
+        pol(td)
+    assert "sk-never-shown" not in str(info.value) and len(sent) <= 4
+    llm.close()

