@@ -179,11 +179,12 @@ class UAVCollector:
             with set_exploration_type(self.exploration_type):
                 pending = self.policy.begin(td)
             if self.overlap:
+                began = time.perf_counter()
                 ended = self._run_between()
                 if pending.handle is not None and self.between is not None:
+                    # the part of the work done before the answers arrived (all of it if still in flight)
                     done = pending.done_at
-                    self.timing["overlap_s"] += max(0.0, min(ended, done if done is not None else ended)
-                                                    - pending.started_at)
+                    self.timing["overlap_s"] += max(0.0, min(ended, done if done is not None else ended) - began)
             with set_exploration_type(self.exploration_type):
                 td = self.policy.finish(td, pending)
         return td
