@@ -102,7 +102,7 @@ def main() -> None:
 
     from omegaconf import OmegaConf
 
-    from uavlae.factories import dump_json
+    from uavlae.factories import dump_json, git_info
     from uavlae.llm.config import ServerConfig
     from uavlae.llm.server import local_server
     from uavlae.machine import describe_machine
@@ -133,6 +133,7 @@ def main() -> None:
     out = {
         "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "machine": describe_machine(),
+        "git": git_info(),
         "command": "python benchmarks/sac_llm_speed.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "note": args.note,
         "run_args": base,

@@ -99,7 +99,7 @@ def main() -> None:
 
     from uavlae.collect import _UniformRandom
     from uavlae.envs import make_env_config
-    from uavlae.factories import behaviour_actor, dump_json, make_env, make_learner
+    from uavlae.factories import behaviour_actor, dump_json, git_info, make_env, make_learner
     from uavlae.machine import describe_machine
     from uavlae.policies.heuristic import HeuristicPolicy
     from uavlae.policies.override import HeuristicAdvisor, OverridePolicy
@@ -127,6 +127,7 @@ def main() -> None:
     out = {
         "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "machine": describe_machine(),
+        "git": git_info(),
         "command": "python benchmarks/trigger_rate.py " + " ".join(sys.argv[1:]),
         "env_batch": args.batch,
         "d_th_m": d_th,
