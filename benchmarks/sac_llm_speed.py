@@ -102,7 +102,8 @@ def main() -> None:
 
     from omegaconf import OmegaConf
 
-    from uavlae.factories import dump_json, git_info
+    from uavlae.factories import git_info
+    from uavlae.files import dump_json
     from uavlae.llm.config import ServerConfig
     from uavlae.llm.server import local_server
     from uavlae.machine import describe_machine

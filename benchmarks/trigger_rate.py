@@ -99,7 +99,8 @@ def main() -> None:
 
     from uavlae.collect import _UniformRandom
     from uavlae.envs import make_env_config
-    from uavlae.factories import behaviour_actor, dump_json, git_info, make_env, make_learner
+    from uavlae.factories import behaviour_actor, git_info, make_env, make_learner
+    from uavlae.files import dump_json
     from uavlae.machine import describe_machine
     from uavlae.policies.heuristic import HeuristicPolicy
     from uavlae.policies.override import HeuristicAdvisor, OverridePolicy
