@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -49,7 +48,7 @@ sys.path.insert(0, str(ROOT))
 
 from uavlae.envs import UAVEnv, make_env_config  # noqa: E402
 from uavlae.envs.world import current_target  # noqa: E402
-from uavlae.factories import dump_json  # noqa: E402
+from uavlae.files import atomic_write, dump_json  # noqa: E402
 from uavlae.llm import Advice, LLMAdvisor, WorldLimits, advisor_states_from_tensordict, make_llm_config  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 from uavlae.policies.heuristic import HeuristicPolicy  # noqa: E402
@@ -69,9 +68,7 @@ ADVISORS = (*LLM_VARIANTS, "heuristic", "hover", "random", "actor", "endpoint")
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    atomic_write(path, lambda fh: torch.save(obj, fh))
 
 
 def _distances(state: TensorDict, pr: float) -> torch.Tensor:
@@ -366,9 +363,8 @@ def main() -> None:
         s = entry["summary"]
         print(f"  {name}: valid {s['valid']:.2f}, violation(H) {s['any_violation_H']:.3f}, "
               f"progress(H) {s['progress_H_m']:+.2f} m, p50 {s['latency_p50_s']:.3g} s", flush=True)
-    tmp = Path(args.table).with_name(f".{Path(args.table).name}.tmp")
-    tmp.write_text(table(results) + "\n")
-    os.replace(tmp, args.table)
+    text = table(results) + "\n"
+    atomic_write(args.table, lambda fh: fh.write(text.encode("utf-8")))
     print(table(results))
 
 
