@@ -70,10 +70,9 @@ bench-llm: $(STAMP)
 # and answered calls/s at 1, 4, 8, 16 in flight -> benchmarks/llm_call_breakdown.json
 .PHONY: bench-llm-breakdown
 bench-llm-breakdown: $(STAMP)
-	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings default previous_default \
-		one_slot_no_affinity json_schema
-	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings threads_2 ubatch_128 \
-		batch_ubatch_64 flash_attn_on flash_attn_off
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings default previous_default
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --rollout-calls 12 --fresh-calls 4 \
+		--settings default one_slot_no_affinity threads_2 ubatch_128 flash_attn_on flash_attn_off
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part concurrency
 
 # What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics

@@ -15,8 +15,9 @@ them meet the same OU motion. Scores per advisor (fractions of its states):
 - ``valid``: answers that passed the extractor (a failed one is scored as a hover);
 - ``latency_p50_s``/``latency_p95_s`` per answer, and the LLM's tokens per call.
 
-Advisors: ``llm`` (the local LLM, compact prompt), ``llm_verbose`` (the earlier, longer
-observation), ``llm_no_safety``/``llm_no_compliance``/``llm_no_data``/``llm_no_energy`` (the
+Advisors: ``llm`` (the local LLM, compact prompt), ``llm_verbose`` (the earlier default: the
+longer observation, ``json_schema``, a 200-character Reasoning), ``llm_json_schema`` and
+``llm_verbose_grammar`` (one of those two changes each), ``llm_no_safety``/``llm_no_compliance``/``llm_no_data``/``llm_no_energy`` (the
 paper's ablations), ``heuristic``, ``hover``, ``random`` (uniform in the speed disc), ``actor``
 (an exported actor, ``--actor FILE.pt2``) and ``endpoint`` (any OpenAI-compatible server,
 ``--endpoint PRESET_OR_YAML``). LLM advisors run with the advice cache off. Results of separate
@@ -34,7 +35,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -48,7 +48,7 @@ sys.path.insert(0, str(ROOT))
 
 from uavlae.envs import UAVEnv, make_env_config  # noqa: E402
 from uavlae.envs.world import current_target  # noqa: E402
-from uavlae.factories import dump_json  # noqa: E402
+from uavlae.files import atomic_write, dump_json  # noqa: E402
 from uavlae.llm import Advice, LLMAdvisor, WorldLimits, advisor_states_from_tensordict, make_llm_config  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 from uavlae.policies.heuristic import HeuristicPolicy  # noqa: E402
@@ -60,14 +60,15 @@ KINDS = ("bz", "nfz", "rz", "ou")
 EVENTS = ("bz_collision", "nfz_entry", "ou_collision", "rz_speeding", "boundary_exit")
 LLM_VARIANTS = {"llm": {}, "llm_verbose": {"observation": "verbose", "reasoning_max_chars": 200,
                                            "response_format": "json_schema", "max_tokens": 160},
+                # which of the two differences matters: the observation or the output format
+                "llm_json_schema": {"response_format": "json_schema"},
+                "llm_verbose_grammar": {"observation": "verbose"},
                 **{f"llm_{a}": {"prompt_ablation": a} for a in ("no_safety", "no_compliance", "no_data", "no_energy")}}
 ADVISORS = (*LLM_VARIANTS, "heuristic", "hover", "random", "actor", "endpoint")
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    atomic_write(path, lambda fh: torch.save(obj, fh))
 
 
 def _distances(state: TensorDict, pr: float) -> torch.Tensor:
@@ -254,6 +255,15 @@ COLUMNS = [("valid", "valid", "{:.2f}"), ("any_violation_1", "viol. 1 slot", "{:
            ("completion_tokens", "compl. tok", "{:.0f}")]
 
 
+def paired(a: list[float], b: list[float], seed: int = 0, draws: int = 2000) -> tuple[float, float, float]:
+    """Mean of b - a over the same states and its 95% bootstrap interval (states resampled)."""
+    d = torch.tensor(b, dtype=torch.float64) - torch.tensor(a, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, d.numel(), (draws, d.numel()), generator=g)
+    means = d[idx].mean(1).sort().values
+    return float(d.mean()), float(means[int(0.025 * draws)]), float(means[int(0.975 * draws) - 1])
+
+
 def table(results: dict[str, Any]) -> str:
     adv = results["advisors"]
     hold = results["hold"]
@@ -272,6 +282,23 @@ def table(results: dict[str, Any]) -> str:
             cells = [fmt.format(s[k]) if k in s and not (isinstance(s[k], float) and math.isnan(s[k])) else "-"
                      for k, _, fmt in COLUMNS]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if "llm" in adv:
+        lines += ["## Each LLM prompt against the default (`llm`), state by state", "",
+                  "Mean difference (other - llm) over the states both answered, with a 95% bootstrap "
+                  "interval; a cheaper prompt must not be worse: violations not higher, progress not lower.", "",
+                  "| advisor | states | Δ viol. H slots | Δ progress H (m) | answers that differ |", "|---|---|---|---|---|"]
+        ref = adv["llm"]
+        for name, a in adv.items():
+            if name == "llm" or not name.startswith("llm"):
+                continue
+            n = min(a["n_states"], ref["n_states"])
+            cells = []
+            for key in ("any_violation_H", "progress_H_m"):
+                m, lo, hi = paired(ref["per_state"][key][:n], a["per_state"][key][:n])
+                cells.append(f"{m:+.3f} [{lo:+.3f}, {hi:+.3f}]")
+            differ = sum(x != y for x, y in zip(ref["actions"][:n], a["actions"][:n]))
+            lines.append(f"| {name} | {n} | " + " | ".join(cells) + f" | {differ} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -336,9 +363,8 @@ def main() -> None:
         s = entry["summary"]
         print(f"  {name}: valid {s['valid']:.2f}, violation(H) {s['any_violation_H']:.3f}, "
               f"progress(H) {s['progress_H_m']:+.2f} m, p50 {s['latency_p50_s']:.3g} s", flush=True)
-    tmp = Path(args.table).with_name(f".{Path(args.table).name}.tmp")
-    tmp.write_text(table(results) + "\n")
-    os.replace(tmp, args.table)
+    text = table(results) + "\n"
+    atomic_write(args.table, lambda fh: fh.write(text.encode("utf-8")))
     print(table(results))
 
 

@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from uavlae.envs import UAVEnv, make_env_config  # noqa: E402
-from uavlae.factories import dump_json  # noqa: E402
+from uavlae.files import dump_json  # noqa: E402
 from uavlae.llm import LLMAdvisor, WorldLimits, advisor_states_from_tensordict, make_llm_config  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 
