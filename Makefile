@@ -71,8 +71,8 @@ bench-llm: $(STAMP)
 .PHONY: bench-llm-breakdown
 bench-llm-breakdown: $(STAMP)
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings default previous_default
-	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --rollout-calls 12 --fresh-calls 4 \
-		--settings default one_slot_no_affinity threads_2 ubatch_128 flash_attn_on flash_attn_off
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --rollout-calls 8 --fresh-calls 3 \
+		--settings default one_slot_no_affinity threads_2 ubatch_128 flash_attn_on
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part concurrency
 
 # What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics
