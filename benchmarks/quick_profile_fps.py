@@ -24,7 +24,8 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-from uavlae.factories import CONF_DIR, dump_json
+from uavlae.factories import CONF_DIR
+from uavlae.files import dump_json
 from uavlae.machine import describe_machine
 
 OUT = Path(__file__).with_name("quick_profile_fps.json")

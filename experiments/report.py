@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import shlex
@@ -35,7 +36,7 @@ from typing import Any
 
 import yaml
 
-from uavlae.factories import dump_json
+from uavlae.files import atomic_write, dump_json
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 # Higher is better for these; lower for the others (the radar chart flips those).
@@ -300,15 +301,17 @@ def aggregate_rows(runs: list[Run], keys: dict[str, Any] | None = None) -> dict[
     return row
 
 
+def _write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     keys = list(dict.fromkeys(k for r in rows for k in r)) or ["empty"]
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(path)
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    _write_text(path, buf.getvalue())
 
 
 def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
@@ -563,7 +566,7 @@ def build(root: Path, out: Path) -> dict[str, Any]:
         _write_csv(out / f"{name}.csv", rows)
         result["tables"][name] = rows
         lines = [f"## {heading}", ""] + ([text, ""] if text else []) + _md_table(rows, first) + [""]
-        (out / f"{name}.md").write_text("\n".join(lines))
+        _write_text(out / f"{name}.md", "\n".join(lines))
         md.extend(lines)
 
     # Fig. 3 and the final evaluation on the default distribution
@@ -691,7 +694,7 @@ def build(root: Path, out: Path) -> dict[str, Any]:
                "## Skipped runs", ""]
     footer += [f"- `{p}`: {why}" for p, why in skipped] or ["none"]
     footer.append("")
-    (out / "report.md").write_text("\n".join(header + md + footer))
+    _write_text(out / "report.md", "\n".join(header + md + footer))
     dump_json(out / "report.json", {k: v for k, v in result.items() if k != "tables"} | {"tables": result["tables"]})
     return result
 

@@ -118,98 +118,23 @@ def test_bad_batch_size_is_a_clear_error():
         UAVEnv(batch_size=[2, 3])
 
 
-@pytest.mark.parametrize("mode", ["pool", "no_pool", "fixed"])
-def test_maybe_reset_row_path_equals_torchrl_generic_path(mode):
-    """UAVEnv.maybe_reset (index_put on the done rows) gives exactly what EnvBase.maybe_reset
-    (reset of the done rows, then a where per entry) gives, on a hand-made done mask, and leaves
-    the transition's "next" entries untouched."""
-    from torchrl.envs import EnvBase
-
-    from uavlae.envs.scenario import sample_scenarios
-
-    B = 6
-
-    def make():
-        if mode == "fixed":
-            source = UAVEnv(batch_size=[1], seed=3)
-            return UAVEnv(batch_size=[B], seed=0, scenarios=sample_scenarios(source.cfg, 4, source.rng))
-        cfg = {"sampling": {"pool_size": 0}} if mode == "no_pool" else None
-        return UAVEnv(cfg, batch_size=[B], seed=0)
-
-    fast, slow = make(), make()
-    td_fast, td_slow = fast.reset(), slow.reset()
-    action = torch.tensor([[0.3, -0.2]]).expand(B, 2)
-    for mask in ([1, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 1], [0, 1, 1, 1, 1, 1]):
-        done = torch.tensor(mask, dtype=torch.bool).unsqueeze(-1)
-        td_fast = fast.step(td_fast.set("action", action.clone()))
-        td_slow = slow.step(td_slow.set("action", action.clone()))
-        for td in (td_fast, td_slow):  # the hand-made mask in place of the world's own
-            td["next", "done"] = done.clone()
-        terminal = td_fast["next"].clone()
-        root_fast = fast.maybe_reset(fast._step_mdp(td_fast))
-        root_slow = EnvBase.maybe_reset(slow, slow._step_mdp(td_slow))
-        assert set(root_fast.keys(True, True)) == set(root_slow.keys(True, True))
-        for key in root_slow.keys(True, True):
-            assert torch.equal(root_fast[key], root_slow[key]), key
-        assert (td_fast["next"] == terminal).all()  # the transition keeps its terminal data
-        keep = ~done.squeeze(-1)
-        assert torch.equal(root_fast["state", "position"][keep], terminal["state", "position"][keep])
-        assert (root_fast["state", "step"][~keep] == 0).all() and not root_fast["done"].any()
-        td_fast, td_slow = root_fast, root_slow
-
-
-def test_maybe_reset_of_a_deeper_root_takes_the_generic_path():
-    """A root with an entry three levels deep is not the env's flat layout: UAVEnv.maybe_reset
-    hands it to EnvBase.maybe_reset, which keeps the entry (zeroed in the reset rows)."""
-    env = UAVEnv(batch_size=[4], seed=0)
-    td = env.step(env.reset().set("action", torch.zeros(4, 2)))
-    td["next", "done"] = torch.tensor([[True], [False], [False], [False]])
-    root = env._step_mdp(td)
-    root["extra", "deep", "x"] = torch.ones(4, 3)
-    out = env.maybe_reset(root)
-    assert out["extra", "deep", "x"].sum(-1).tolist() == [0.0, 3.0, 3.0, 3.0]
-    assert out["state", "step"].tolist() == [0, 1, 1, 1]
-
-
-def _same_entries(a, b, path=""):
-    """The same keys in the same order, batch sizes, devices, and the very same tensors."""
-    assert type(a) is type(b) and list(a.keys()) == list(b.keys()), path
-    assert a.batch_size == b.batch_size and a.device == b.device, path
-    for k in a.keys():
-        x, y = a.get(k), b.get(k)
-        if isinstance(x, torch.Tensor):
-            assert x is y, f"{path}/{k}"
-        else:
-            _same_entries(x, y, f"{path}/{k}")
-
-
-def test_flat_step_mdp_gives_torchrl_s_root():
-    """UAVEnv._step_mdp (the root for the next step, without TorchRL's per-entry dispatch) gives
-    what TorchRL's generic _StepMDP gives: the same tensors under the same keys, the policy's own
-    entries kept (a nested one too, and an extra leaf in "state"), "next", the reward and
-    "_reset" dropped; a root it does not handle (a lazy stack) goes to the generic object."""
-    from tensordict import LazyStackedTensorDict, TensorDict
-
-    env = UAVEnv(batch_size=[3], seed=0)
-    flat = env._step_mdp
-    assert flat is env._step_mdp and flat.flat  # built once; the env's key trees are two levels deep
-    td = env.reset().set("action", torch.zeros(3, 2)).set("loc", torch.ones(3, 2))
-    td["policy"] = TensorDict({"h": torch.zeros(3, 4)}, batch_size=[3])
-    td["state", "extra_leaf"] = torch.arange(3.0)
-    td["_reset"] = torch.zeros(3, 1, dtype=torch.bool)
-    out = env.step(td)
-    root = flat(out)
-    _same_entries(root, flat.generic(out))
-    assert "next" not in root.keys() and "reward" not in root.keys() and "_reset" not in root.keys()
-    assert root["state", "position"] is out["next", "state", "position"] and root["loc"] is out["loc"]
-    assert root["state", "extra_leaf"] is out["state", "extra_leaf"]
-    lazy = LazyStackedTensorDict.lazy_stack([out[:2], out[2:]], 0)
-    assert flat._build(lazy) is None and type(flat(lazy)) is LazyStackedTensorDict
-
-
 def test_stepping_a_root_without_its_state_names_the_missing_entries():
     env = UAVEnv(batch_size=[2], seed=0)
     td = env.reset().set("action", torch.zeros(2, 2))
     del td["state", "position"], td["state", "energy_used"]
     with pytest.raises(KeyError, match=r"no \('state', key\) for \['position', 'energy_used'\]"):
         env._step(td)
+
+
+def test_env_contract_lists_the_state_table():
+    """docs/env_contract.md shows the raw state exactly as STATE_TABLE (which the specs use) has it."""
+    from pathlib import Path
+
+    from uavlae.envs.world import state_table_markdown
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "env_contract.md").read_text()
+    assert state_table_markdown() in doc
+    env = UAVEnv(batch_size=[2], seed=0)
+    assert set(env.observation_spec["state"].keys()) == set(env.raw_state_keys)
+    assert env.observation_spec["state", "served_ge"].dtype == torch.int64
+    assert env.observation_spec["state", "ge_pos"].shape == (2, env.cfg.ge.count.padded, 2)

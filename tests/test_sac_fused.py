@@ -3,8 +3,7 @@
 The reference is torchrl's ``SACLoss`` forward plus autograd, on the same parameter tensors and
 the same seeded noise: every loss and every gradient must agree to float32 rounding, for every
 activation and critic loss the config offers, on a box that is not [-1, 1], on deeper nets, and
-on real env transitions. Plus one case small enough to do by hand, the direct Adam kernel call
-against ``Adam.step``, and the config errors.
+on real env transitions. Plus one case small enough to do by hand, and the config errors.
 """
 
 from __future__ import annotations
@@ -14,7 +13,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
 
-from uavlae.algos.common import fused_adam_step
 from uavlae.algos.sac import make_sac, make_sac_config
 from uavlae.algos.sac_fused import FusedSACGrad
 from uavlae.envs import UAVEnv
@@ -169,38 +167,6 @@ def test_whole_updates_match_torchrl():
     for idx, st in a["optimisers"]["sac"]["state"].items():
         for name in ("exp_avg", "exp_avg_sq", "step"):
             assert torch.allclose(st[name], b["optimisers"]["sac"]["state"][idx][name], rtol=1e-4, atol=1e-7), (idx, name)
-
-
-def test_direct_adam_kernel_equals_adam_step():
-    torch.manual_seed(0)
-    params_a = [torch.nn.Parameter(torch.randn(4, 3)), torch.nn.Parameter(torch.randn(3)), torch.nn.Parameter(torch.randn(()))]
-    params_b = [torch.nn.Parameter(p.detach().clone()) for p in params_a]
-
-    def groups(ps):
-        return [{"params": ps[:2], "lr": 1e-2}, {"params": ps[2:], "lr": 3e-2, "weight_decay": 0.1}]
-
-    opt_a, opt_b = torch.optim.Adam(groups(params_a), fused=True), torch.optim.Adam(groups(params_b), fused=True)
-    index = [[0, 1], [2]]
-    for step in range(4):
-        grads = [torch.randn(p.shape) for p in params_a]
-        for p, g in zip(params_a, grads):
-            p.grad = g.clone()
-        opt_a.step()
-        done = fused_adam_step(opt_b, grads, index)
-        assert done == (step > 0)  # the first step leaves state creation to Adam.step
-        if not done:
-            for p, g in zip(params_b, grads):
-                p.grad = g.clone()
-            opt_b.step()
-    for p, q in zip(params_a, params_b):
-        assert torch.equal(p, q)
-    for p, q in zip(params_a, params_b):
-        for name in ("exp_avg", "exp_avg_sq", "step"):
-            assert torch.equal(opt_a.state[p][name], opt_b.state[q][name])
-    # options the plain kernel call does not cover: nothing done, Adam.step must run
-    amsgrad = torch.optim.Adam([torch.nn.Parameter(torch.ones(2))], fused=True, amsgrad=True)
-    assert not fused_adam_step(amsgrad, [torch.ones(2)], [[0]])
-    assert not fused_adam_step(torch.optim.SGD([torch.nn.Parameter(torch.ones(2))]), [torch.ones(2)], [[0]])
 
 
 def test_config_and_unsupported_losses_are_errors():

@@ -33,7 +33,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.factories import CONF_DIR, dump_json, without_hydra_output
+from uavlae.factories import CONF_DIR, without_hydra_output
+from uavlae.files import dump_json
 
 log = logging.getLogger(__name__)
 

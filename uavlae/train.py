@@ -49,6 +49,7 @@ from uavlae.factories import (
     trim_csv_scalars,
     validate_config,
 )
+from uavlae.files import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     resolved = _resolved(cfg)
     dump_json(run_dir / "config.json", resolved)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    yaml_text = OmegaConf.to_yaml(OmegaConf.create(resolved))
+    atomic_write(run_dir / "config.yaml", lambda fh: fh.write(yaml_text.encode("utf-8")))
     meta = run_metadata(resolved)
     dump_json(run_dir / "meta.json", meta)
 

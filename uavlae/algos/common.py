@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 from tensordict import TensorDictBase
 
-from uavlae.validation import parse_model
+from uavlae.validation import StrictModel, parse_model
 
 C = TypeVar("C", bound=BaseModel)
 
 
-class StrictConfig(BaseModel):
-    """Unknown keys, NaN/inf and wrong types are errors (STYLE.md rule 6)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+StrictConfig = StrictModel  # the learners' configs share the project's strict base
 
 
 def parse_config(model: type[C], cfg: Any = None, **overrides: Any) -> C:
@@ -68,55 +65,6 @@ def apply_gradients(
                     norms[key] = torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
         opt.step()
     return norms
-
-
-def fused_adam_step(
-    opt: torch.optim.Optimizer, grads: Sequence[torch.Tensor], group_index: Sequence[Sequence[int]]
-) -> bool:
-    """``opt.step()`` for gradients given as tensors instead of in ``.grad``: the same fused
-    kernel (``torch._fused_adam_``) on the same state tensors, without ``Adam.step``'s Python
-    bookkeeping (~0.3 ms of ~3 ms per SAC update on one CPU thread). ``grads[group_index[g][k]]``
-    is the gradient of ``opt.param_groups[g]["params"][k]``. Step hooks are not run.
-
-    Returns False and does nothing when it cannot stand in for ``opt.step()``: not a fused Adam,
-    an option the plain kernel call does not cover (amsgrad, maximize, decoupled weight decay,
-    capturable, differentiable), or a parameter without state yet (the first step: let
-    ``Adam.step`` create it)."""
-    if type(opt) is not torch.optim.Adam:
-        return False
-    calls = []
-    for group, index in zip(opt.param_groups, group_index, strict=True):
-        if not group["fused"] or group["amsgrad"] or group["maximize"] or group["capturable"]:
-            return False
-        if group["differentiable"] or group.get("decoupled_weight_decay", False):
-            return False
-        states = [opt.state.get(p) for p in group["params"]]
-        if not all(states):
-            return False
-        calls.append((group, [grads[i] for i in index], states))
-    with torch.no_grad():
-        for group, group_grads, states in calls:
-            steps = [s["step"] for s in states]
-            torch._foreach_add_(steps, 1)
-            beta1, beta2 = group["betas"]
-            torch._fused_adam_(
-                group["params"],
-                group_grads,
-                [s["exp_avg"] for s in states],
-                [s["exp_avg_sq"] for s in states],
-                [],
-                steps,
-                amsgrad=False,
-                lr=group["lr"],
-                beta1=beta1,
-                beta2=beta2,
-                weight_decay=group["weight_decay"],
-                eps=group["eps"],
-                maximize=False,
-                grad_scale=None,
-                found_inf=None,
-            )
-    return True
 
 
 def to_floats(values: Mapping[str, Any] | TensorDictBase, keys: Iterable[str] | None = None) -> dict[str, float]:

@@ -6,12 +6,12 @@ SPEC.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.9
 ``"observation"``, ``"action"``, ``("next", "observation")``, ``("next", "reward")``,
 ``("next", "done")``, ``("next", "terminated")`` and does one gradient step on actor, both Q
 nets and log(alpha) (one fused Adam, a parameter group each), then one soft update of the target
-Q nets (one ``torch._foreach_lerp_``).
+Q nets (a ``lerp_`` per parameter).
 
 The gradients come from ``SACLoss`` itself (``loss_impl: torchrl``: its forward, then autograd)
 or, by default, from :class:`uavlae.algos.sac_fused.FusedSACGrad` (``loss_impl: fused``): the
-same losses and gradients of the same parameters, written out as plain tensor ops, ~3x the
-updates/s on one CPU thread. Speed and its measurement: benchmarks/sac_update_speed.md.
+same losses and gradients of the same parameters, written out as plain tensor ops (its speed:
+docs/performance.md).
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from uavlae.algos.common import (
     StrictConfig,
     apply_gradients,
-    fused_adam_step,
     load_parts_state_dict,
     optimiser_step,
     parse_config,
@@ -57,8 +56,8 @@ class SACConfig(StrictConfig):
     # fused: SACLoss's gradients written out by hand (sac_fused.py; same maths, tested against
     # autograd through SACLoss); torchrl: SACLoss's forward and autograd (the reference).
     loss_impl: Literal["fused", "torchrl"] = "fused"
-    # torch.compile SACLoss (loss_impl torchrl only): ~1.9x its eager updates/s after a one-off
-    # ~10-25 s compile, still slower than the eager fused update (benchmarks/sac_update_speed.md).
+    # torch.compile SACLoss (loss_impl torchrl only), after a one-off compile; the eager fused
+    # update stays faster (docs/performance.md).
     compile: bool = False
     compile_simdlen: int | None = Field(128, gt=0)  # inductor CPU vector bits; see compile_loss
     # Read by the collector / training loop, not by update():
@@ -72,7 +71,7 @@ class SACConfig(StrictConfig):
         if self.compile and self.loss_impl != "torchrl":
             raise ValueError(
                 "algo.compile compiles torchrl's SACLoss and needs algo.loss_impl=torchrl; the default "
-                "fused update is faster uncompiled (benchmarks/sac_update_speed.md)"
+                "fused update is faster uncompiled (docs/performance.md)"
             )
         return self
 
@@ -88,10 +87,9 @@ _GROUPS = ("actor", "critic", "alpha")  # the Adam parameter groups, in this ord
 def compile_loss(loss: SACLoss, simdlen: int | None) -> Any:
     """``torch.compile`` of the loss forward (and with it its backward).
 
-    ``simdlen``: inductor's CPU vector width in bits. The backward keeps each ReLU's mask as a
-    bool tensor, and inductor's 256-bit (AVX2) kernels storing one ran at ~0.4 ms per 2x256x64
-    mask on the dev VM's EPYC (eager PyTorch: ~0.06 ms); 128-bit vectors made the compiled update
-    ~15% faster there (benchmarks/sac_update_speed.md). None: inductor's choice for the CPU."""
+    ``simdlen``: inductor's CPU vector width in bits (a public ``torch.compile`` option). The
+    backward keeps each ReLU's mask as a bool tensor, which inductor's 256-bit kernels store
+    slowly on some CPUs; 128 avoids that (docs/performance.md). None: inductor's choice."""
     options = None if simdlen is None else {"cpp.simdlen": simdlen}
     return torch.compile(loss, options=options)
 
@@ -104,7 +102,7 @@ class SAC:
     actor: ProbabilisticActor  # the acting policy; shares its parameters with ``loss``
     loss: SACLoss
     optimisers: dict[str, torch.optim.Optimizer]  # {"sac": Adam with groups actor/critic/alpha}
-    target_updater: SoftUpdate  # owns the source/target pairing; stepped by one foreach call
+    target_updater: SoftUpdate  # owns the source/target pairing and tau
     num_updates: int = 0
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
@@ -112,12 +110,10 @@ class SAC:
     _targets: list = field(default_factory=list, repr=False)
     _tau: float = field(default=0.0, repr=False)
     _fused: FusedSACGrad | None = field(default=None, repr=False)
-    _group_index: list = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
-        # Only the loss is compiled. Compiling the whole update too (backward, Adam, the target
-        # lerp) measured slower (benchmarks/sac_update_speed.md): the fused Adam and the foreach
-        # lerp are already one kernel call each, and more graphs mean more guard checks.
+        # Only the loss is compiled: the fused Adam is already one kernel per group, and more
+        # graphs mean more guard checks.
         self._loss_fn = compile_loss(self.loss, self.cfg.compile_simdlen) if self.cfg.compile else self.loss
         self._in_keys = list(self.loss.in_keys)
         # SoftUpdate(SACLoss) pairs the Q nets' parameters with their targets, leaf by leaf; the
@@ -128,30 +124,26 @@ class SAC:
             self._targets.append(target.get(key).data)
         self._tau = 1.0 - self.target_updater.eps  # SoftUpdate's own weight, bit for bit
         if self.cfg.loss_impl == "fused":
-            self._fused = FusedSACGrad(self.loss, self.cfg.activation)
-            order = {id(p): i for i, p in enumerate(self._fused.params)}
+            box = self.actor.spec["action"].space
+            self._fused = FusedSACGrad(self.loss, self.cfg.activation, box.low, box.high)
             groups = self.optimisers["sac"].param_groups
-            if sorted(order) != sorted(id(p) for g in groups for p in g["params"]):
+            if sorted(map(id, self._fused.params)) != sorted(id(p) for g in groups for p in g["params"]):
                 raise RuntimeError("the optimiser's parameters are not the loss's")  # make_sac bug
-            self._group_index = [[order[id(p)] for p in g["params"]] for g in groups]
 
     def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self._fused is not None:
             out, grads = self._fused.grads(batch)
-            opt = self.optimisers["sac"]
-            if self.cfg.max_grad_norm is None and fused_adam_step(opt, grads, self._group_index):
-                norms = {}
-            else:
-                for p, g in zip(self._fused.params, grads):
-                    p.grad = g
-                norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
+            for p, g in zip(self._fused.params, grads):
+                p.grad = g
+            norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
         else:
             out = self._loss_fn(batch)
             total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
             norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
         with torch.no_grad():
-            # SoftUpdate: target <- target + tau (source - target), every pair in one call
-            torch._foreach_lerp_(self._targets, self._sources, self._tau)
+            # SoftUpdate: target <- target + tau (source - target)
+            for target, source in zip(self._targets, self._sources):
+                target.lerp_(source, self._tau)
         logs = {k: out[k].detach() for k in _LOG_KEYS}
         logs.update((k, v.detach()) for k, v in norms.items())
         return logs

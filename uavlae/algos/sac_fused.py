@@ -5,7 +5,7 @@ observations (no grad) and on the observations, the target Q nets on (next obs, 
 and the Q nets twice on the observations: with the replayed action (critic loss) and with the
 fresh action and detached parameters (actor loss); autograd then walks all of it back. Each pass
 goes through TensorDict modules, ``vmap`` and distribution objects; on one CPU core that
-bookkeeping costs more than the ~85 MFLOP of the update itself (benchmarks/sac_update_speed.md).
+bookkeeping costs more than the arithmetic of the update itself (docs/performance.md).
 
 :class:`FusedSACGrad` returns the same losses and the same gradients for the same parameter
 tensors, which it reads from the ``SACLoss`` (the loss keeps owning them, so the optimiser,
@@ -40,7 +40,10 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
+from tensordict.nn import inv_softplus
 from torchrl.objectives import SACLoss
+
+from uavlae.policies.networks import SCALE_AT_ZERO, SCALE_LB, SCALE_MIN
 
 Layers = list[tuple[torch.Tensor, torch.Tensor]]
 _HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
@@ -84,11 +87,16 @@ def _linear_layers(params: TensorDictBase) -> Layers:
 
 class FusedSACGrad:
     """``grads(batch) -> (logs, grads)``: ``SACLoss``'s five outputs and the gradient of
-    ``loss_actor + loss_qvalue + loss_alpha`` for :attr:`params` (in that order)."""
+    ``loss_actor + loss_qvalue + loss_alpha`` for :attr:`params` (in that order).
 
-    def __init__(self, loss: SACLoss, activation: str) -> None:
-        if loss._version != 2:
-            raise ValueError("FusedSACGrad implements SAC v2 (no value network)")
+    Built from what ``make_sac`` creates: the ``SACLoss`` (v2, no value network) whose public
+    parameter TensorDicts it reads, the nets' ``activation`` and the action box ``low`` /
+    ``high`` of the actor's TanhNormal (``None``: [-1, 1]); the scale head is
+    ``uavlae.policies.networks``' (``SCALE_AT_ZERO``, ``SCALE_MIN``, ``SCALE_LB``)."""
+
+    def __init__(
+        self, loss: SACLoss, activation: str, low: torch.Tensor | None = None, high: torch.Tensor | None = None
+    ) -> None:
         if loss.skip_done_states:
             raise ValueError("FusedSACGrad does not implement skip_done_states")
         if loss.loss_function not in _LOSSES:
@@ -113,13 +121,12 @@ class FusedSACGrad:
         # every parameter the optimiser steps, in a fixed order matching grads()' output
         self.params: list[torch.Tensor] = [t for wb in self.actor_layers for t in wb]
         self.params += [t for wb in self.q_layers for t in wb] + [self.log_alpha]
-        # the actor's NormalParamExtractor (biased softplus, lower bound) and TanhNormal box
-        extractor = loss.actor_network.module[0].module[-1]
-        self.scale_bias = float(extractor.scale_mapping.bias)
-        self.scale_min = float(extractor.scale_mapping.min_val)
-        self.scale_lb = float(extractor.scale_lb)
-        kwargs = loss.actor_network.module[1].distribution_kwargs
-        low, high = torch.as_tensor(kwargs["low"]), torch.as_tensor(kwargs["high"])
+        # the actor's scale head (biased softplus, lower bound) and TanhNormal box
+        self.scale_bias = float(inv_softplus(SCALE_AT_ZERO - SCALE_MIN))
+        self.scale_min = SCALE_MIN
+        self.scale_lb = SCALE_LB
+        low = torch.as_tensor(-1.0 if low is None else low)
+        high = torch.as_tensor(1.0 if high is None else high)
         self.box: tuple[torch.Tensor, torch.Tensor] | None = None
         if bool((low != -1).any() or (high != 1).any()):
             self.box = ((high + low) / 2, (high - low) / 2)

@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from uavlae.envs import ckernels
 from uavlae.envs.config import (
     ChannelConfig,
     CostConfig,
@@ -255,162 +253,42 @@ def _ou_move_ok(
 ) -> Tensor:
     """True where the OU move pos -> pos + vel·t_fly meets no blocked rectangle and ends inside A."""
     end = pos + vel * t_fly
-    rects, rmask = blocked.unsqueeze(-3), blocked_mask.unsqueeze(-2)  # [..., 1, Z, 4], [..., 1, Z]
-    eager_cpu = pos.device.type == "cpu" and not torch.compiler.is_compiling()
-    if eager_cpu and pos.shape[:-2] == blocked.shape[:-2] and end.shape == pos.shape:
-        # A move is at most v_max·t_fly long, so few (OU, rectangle) pairs even share a bounding
-        # box: run the exact test on those pairs only. The bounding-box screen runs batch-last
-        # ([Z, K, N], the batch contiguous), where eager's broadcast compares vectorise.
-        n, k, z = math.prod(pos.shape[:-2]), pos.shape[-2], blocked.shape[-2]
-        p0, p1 = pos.reshape(n, k, 2), end.reshape(n, k, 2)
-        r = blocked.reshape(n, z, 4)
-        lo = torch.minimum(p0, p1).permute(2, 1, 0).contiguous().unsqueeze(1)  # [2, 1, K, N]
-        hi = torch.maximum(p0, p1).permute(2, 1, 0).contiguous().unsqueeze(1)
-        rt = r.permute(2, 1, 0).contiguous().unsqueeze(-2)  # [4, Z, 1, N]
-        near = (lo[0] <= rt[2]) & (hi[0] >= rt[0]) & (lo[1] <= rt[3]) & (hi[1] >= rt[1])
-        near &= blocked_mask.reshape(n, z).t().unsqueeze(1)  # [Z, K, N]
-        hit = torch.zeros(p0.shape[:-1], dtype=torch.bool, device=pos.device)  # [N, K]
-        iz, ik, ib = near.nonzero(as_tuple=True)
-        if iz.numel():
-            one = torch.ones((iz.numel(), 1), dtype=torch.bool, device=pos.device)
-            h = segment_hits_rects(p0[ib, ik], p1[ib, ik], r[ib, iz].unsqueeze(-2), one).squeeze(-1)
-            hit[ib[h], ik[h]] = True
-        return ~hit.reshape(pos.shape[:-1]) & ~outside_area(end, x_size, y_size)
-    if eager_cpu:
-        shape = torch.broadcast_shapes(end.shape[:-1] + (1,), rmask.shape)
-        near = _boxes_overlap(pos.unsqueeze(-2), end.unsqueeze(-2), rects) & rmask
-        near = near.expand(shape)
-        hits = torch.zeros(shape, dtype=torch.bool, device=pos.device)
-        idx = near.nonzero(as_tuple=True)
-        if idx[0].numel():
-            p0 = pos.unsqueeze(-2).expand(*shape, 2)[idx]
-            p1 = end.unsqueeze(-2).expand(*shape, 2)[idx]
-            r = rects.expand(*shape, 4)[idx]
-            hits[idx] = segment_hits_rects(p0, p1, r.unsqueeze(-2), torch.ones_like(idx[0], dtype=torch.bool).unsqueeze(-1)).squeeze(-1)
-    else:
-        hits = segment_hits_rects(pos, end, rects, rmask)
+    hits = segment_hits_rects(pos, end, blocked.unsqueeze(-3), blocked_mask.unsqueeze(-2))  # [..., K, Z]
     return ~hits.any(-1) & ~outside_area(end, x_size, y_size)
 
 
 def _retry_headings(
-    pos: Tensor, v: Tensor, ok: Tensor, headings: Tensor, blocked: Tensor, blocked_mask: Tensor,
+    pos: Tensor, v: Tensor, headings: Tensor, blocked: Tensor, blocked_mask: Tensor,
     x_size: float, y_size: float, t_fly: float,
 ) -> Tensor:
-    """Velocities for the blocked OUs: same speed, the first of ``headings`` whose move is valid,
-    else 0 (hover). On CPU only the blocked OUs are tested (they are few); on an accelerator the
-    dense form avoids a host sync. Both give the same result."""
-    if pos.device.type == "cpu" and not torch.compiler.is_compiling():
-        out = torch.zeros_like(v)
-        bad = (~ok).nonzero(as_tuple=True)  # indices into [..., K]
-        if bad[0].numel() == 0:
-            return out
-        lead = bad[:-1]  # batch indices of each blocked OU
-        heads = headings[(slice(None), *bad)]  # [T, n]
-        speed = torch.linalg.vector_norm(v[bad], dim=-1)
-        tries = _heading_velocity(speed.expand_as(heads), heads)  # [T, n, 2]
-        start = pos[bad]  # [n, 2], each with its own rectangles [n, Z, 4]
-        end = start + tries * t_fly
-        hits = segment_hits_rects(start, end, blocked[lead], blocked_mask[lead]).any(-1)
-        tries_ok = ~hits & ~outside_area(end, x_size, y_size)  # [T, n]
-        first = tries_ok.to(torch.uint8).argmax(0)  # argmax returns the first maximum
-        chosen = tries[first, torch.arange(first.numel(), device=pos.device)]
-        out[bad] = torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
-        return out
+    """For every OU, the velocity of the first of ``headings`` ([T, ..., K]) at the same speed
+    whose move is valid, else 0 (hover)."""
     speed = torch.linalg.vector_norm(v, dim=-1)
-    tries_all = _heading_velocity(speed.expand_as(headings), headings)  # [T, ..., K, 2]
-    tries_ok = _ou_move_ok(pos, tries_all, blocked, blocked_mask, x_size, y_size, t_fly)  # [T, ..., K]
-    first = tries_ok.to(torch.uint8).argmax(0)
-    chosen = torch.gather(tries_all, 0, first[None, ..., None].expand(1, *tries_all.shape[1:])).squeeze(0)
+    tries = _heading_velocity(speed.expand_as(headings), headings)  # [T, ..., K, 2]
+    tries_ok = _ou_move_ok(pos, tries, blocked, blocked_mask, x_size, y_size, t_fly)  # [T, ..., K]
+    first = tries_ok.to(torch.uint8).argmax(0)  # argmax returns the first maximum
+    chosen = torch.gather(tries, 0, first[None, ..., None].expand(1, *tries.shape[1:])).squeeze(0)
     return torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
-
-
-def retry_capacity(n_slots: int) -> int:
-    """How many blocked OUs the compiled CPU retry compacts (``_retry_headings_compacted``): a
-    sixteenth of the OU slots, at least 64 (all of them when fewer). About 2.5% of the OUs are
-    blocked in a slot at SPEC's defaults (2.4% on average, 2.7% at most over 150 random-action
-    slots at B = 4096), so the cap is rarely reached; beyond it the dense form runs, with the same
-    result. The compacted tests cost in proportion to the cap, not to the blocked count."""
-    return min(n_slots, max(64, n_slots // 16))
-
-
-def _retry_headings_compacted(
-    pos: Tensor, v: Tensor, ok: Tensor, headings: Tensor, blocked: Tensor, blocked_mask: Tensor,
-    x_size: float, y_size: float, t_fly: float,
-) -> Tensor:
-    """``_retry_headings`` inside a CPU torch.compile graph, with static shapes: the sparse form
-    on the blocked OUs compacted into ``retry_capacity`` slots (``nonzero_static``), or, when more
-    are blocked, the dense form (``torch.cond``). The same tests on the same numbers as the eager
-    sparse form, without the graph break that running it eagerly would need."""
-    k, n_slots, t, z = ok.shape[-1], ok.numel(), headings.shape[0], blocked.shape[-2]
-    cap = retry_capacity(n_slots)
-    bad = ~ok.reshape(-1)
-
-    def dense(pos, v, ok, headings, blocked, blocked_mask):
-        return _retry_headings(pos, v, ok, headings, blocked, blocked_mask, x_size, y_size, t_fly)
-
-    def sparse(pos, v, ok, headings, blocked, blocked_mask):
-        idx = torch.nonzero_static(bad, size=cap, fill_value=n_slots).squeeze(-1)  # [cap], n_slots = unused
-        g = idx.clamp(max=n_slots - 1)
-        lead = torch.div(g, k, rounding_mode="floor")  # batch row of each compacted OU
-        heads = headings.reshape(t, n_slots)[:, g]  # [T, cap]
-        speed = torch.linalg.vector_norm(v.reshape(n_slots, 2)[g], dim=-1)
-        tries = _heading_velocity(speed.expand_as(heads), heads)  # [T, cap, 2]
-        start = pos.reshape(n_slots, 2)[g]
-        end = start + tries * t_fly
-        rects, rmask = blocked.reshape(-1, z, 4)[lead], blocked_mask.reshape(-1, z)[lead]
-        hits = segment_hits_rects(start, end, rects, rmask).any(-1)
-        tries_ok = ~hits & ~outside_area(end, x_size, y_size)  # [T, cap]
-        first = tries_ok.to(torch.uint8).argmax(0)  # argmax returns the first maximum
-        chosen = torch.gather(tries, 0, first[None, :, None].expand(1, cap, 2)).squeeze(0)
-        chosen = torch.where(tries_ok.any(0).unsqueeze(-1), chosen, torch.zeros_like(chosen))
-        out = torch.zeros((n_slots + 1, 2), dtype=v.dtype, device=v.device)
-        return out.index_put((idx,), chosen)[:n_slots].reshape(v.shape)  # the spare row takes the padding
-
-    return torch.cond(bad.sum() > cap, dense, sparse, (pos, v, ok, headings, blocked, blocked_mask))
-
-
-def _retry(
-    pos: Tensor, v: Tensor, ok: Tensor, headings: Tensor, blocked: Tensor, blocked_mask: Tensor,
-    x_size: float, y_size: float, t_fly: float,
-) -> Tensor:
-    # On CPU the dense form tests every OU x heading x rectangle and costs a compiled step more
-    # than everything else together: there the compiled step compacts the few blocked OUs.
-    compacted = (
-        pos.device.type == "cpu" and torch.compiler.is_compiling()
-        and pos.shape[:-2] == blocked.shape[:-2] and v.shape == pos.shape and headings.shape[1:] == ok.shape
-    )
-    fn = _retry_headings_compacted if compacted else _retry_headings
-    return fn(pos, v, ok, headings, blocked, blocked_mask, x_size, y_size, t_fly)
-
-
-def ou_noise_spec(
-    shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig
-) -> list[tuple[str, torch.Size, str, float]]:
-    """:func:`ou_noise`'s four U[0, 1) draws in the order it draws them, each as ``(name, shape,
-    op, param)``: the entry is ``u < param`` (``op`` ``"<"``) or ``u * param`` (``"*"``)."""
-    shape = torch.Size(shape)
-    return [
-        ("turn", shape, "<", ou.p_turn),
-        ("speed", shape, "*", m.v_max),
-        ("heading", shape, "*", 2.0 * math.pi),
-        ("retry_heading", torch.Size((ou.heading_tries, *shape)), "*", 2.0 * math.pi),
-    ]
 
 
 def ou_noise(
     shape: torch.Size | tuple[int, ...], ou: OUConfig, m: MotionConfig, generator: torch.Generator,
     device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
-    uniforms: Sequence[Tensor] | None = None,
 ) -> dict[str, Tensor]:
-    """The random draws of one OU slot for OUs of shape ``[..., K]``: every tensor is drawn every
-    slot, so the random stream depends on the seed only, not on the data. ``uniforms``: the four
-    U[0, 1) tensors (turn, speed, heading: ``shape``; retries: ``[heading_tries, *shape]``)
-    already drawn, in this order, from ``generator`` (world.draw_noise draws them at once)."""
-    spec = ou_noise_spec(shape, ou, m)
-    if uniforms is None:
-        kw = dict(generator=generator, device=device, dtype=dtype)
-        uniforms = [torch.rand(s, **kw) for _, s, _, _ in spec]
-    return {name: u < p if op == "<" else u * p for (name, _, op, p), u in zip(spec, uniforms)}
+    """The random draws of one OU slot for OUs of shape ``[..., K]``, in this order: turn flags,
+    speeds, headings, retry headings ``[heading_tries, ..., K]``. Every tensor is drawn every
+    slot, so the random stream depends on the seed only, not on the data."""
+    shape = torch.Size(shape)
+
+    def u(*s: int) -> Tensor:
+        return torch.rand(s, generator=generator, device=device, dtype=dtype)
+
+    return {
+        "turn": u(*shape) < ou.p_turn,
+        "speed": u(*shape) * m.v_max,
+        "heading": u(*shape) * (2.0 * math.pi),
+        "retry_heading": u(ou.heading_tries, *shape) * (2.0 * math.pi),
+    }
 
 
 def ou_step(
@@ -432,24 +310,12 @@ def ou_step(
     turn, new_speed, new_heading = noise["turn"], noise["speed"], noise["heading"]
     retry_heading = noise["retry_heading"]
 
-    if (
-        ckernels.applies(pos) and "heading_cos" in noise and pos.dim() == 3
-        and vel.shape == pos.shape and blocked.shape[:-2] == pos.shape[:-2]
-    ):
-        # the compiled CPU step: the same OU step in C, one OU at a time (envs/ckernels.py)
-        return ckernels.ou_step_cpu(
-            pos, vel, mask, blocked, blocked_mask, turn, new_speed, noise["heading_cos"], noise["heading_sin"],
-            retry_heading, float(x_size), float(y_size), float(m.t_fly),
-        )
-    if "heading_cos" in noise:  # cos/sin of the new headings, computed by the caller
-        turned = torch.stack((new_speed * noise["heading_cos"], new_speed * noise["heading_sin"]), dim=-1)
-    else:
-        turned = _heading_velocity(new_speed, new_heading)
+    turned = _heading_velocity(new_speed, new_heading)
     v = torch.where(turn.unsqueeze(-1), turned, vel)
     ok = _ou_move_ok(pos, v, blocked, blocked_mask, x_size, y_size, m.t_fly)
 
     # a blocked move keeps its speed and tries new headings, the first valid one wins
-    v = torch.where(ok.unsqueeze(-1), v, _retry(pos, v, ok | ~mask, retry_heading, blocked, blocked_mask, x_size, y_size, m.t_fly))
+    v = torch.where(ok.unsqueeze(-1), v, _retry_headings(pos, v, retry_heading, blocked, blocked_mask, x_size, y_size, m.t_fly))
 
     present = mask.unsqueeze(-1)
     new_pos = torch.where(present, pos + v * m.t_fly, pos)

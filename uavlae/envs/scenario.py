@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,8 +33,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
-from uavlae.envs import ckernels
 from uavlae.envs.config import EnvConfig
+from uavlae.files import dump_json
 
 __all__ = [
     "SCENARIO_KEYS",
@@ -246,29 +245,17 @@ def _connected(cfg: EnvConfig, obst: Tensor, obst_mask: Tensor, start: Tensor, t
     seed_idx = grid.cell_of(start)
     t_idx = grid.cell_of(targets)  # [n, T]
     always = torch.ones(n, dtype=torch.bool, device=dev)
-    cx, cy = grid.centres(dev)
-    d = cfg.safety.d_min
-    grids = ckernels.free_grid(  # the same grids in C: one pass over each rectangle's cells
-        obst, obst_mask, cx, cy, d, math.ceil(d / grid.cell_y),
-        torch.cat((seed_idx.unsqueeze(-1), t_idx), 1), torch.cat((always.unsqueeze(-1), target_mask), 1),
-    )
-    if grids is not None:
-        free, seed = grids
-    else:
-        free = ~_blocked(cfg, grid, obst, obst_mask)
-        nb = free.shape[0]
-        seed = _point_bits(grid, nb, b, seed_idx, always)
-        free |= seed
-        for t in range(targets.shape[1]):
-            free |= _point_bits(grid, nb, b, t_idx[:, t], target_mask[:, t])
+    free = ~_blocked(cfg, grid, obst, obst_mask)
+    nb = free.shape[0]
+    seed = _point_bits(grid, nb, b, seed_idx, always)
+    free |= seed
+    for t in range(targets.shape[1]):
+        free |= _point_bits(grid, nb, b, t_idx[:, t], target_mask[:, t])
     bt = b.unsqueeze(-1).expand_as(t_idx)
 
     def all_reached(r: Tensor) -> Tensor:
         return (_bits_at(r, bt, t_idx) | ~target_mask).all(-1)
 
-    reached = ckernels.flood(free, seed)  # the whole component, in C (the same cells)
-    if reached is not None:
-        return all_reached(reached)
     runs = {dim: _runs_free(free, dim) for dim in (1, 2)}
     reached = seed.clone()
     for _ in range(grid.nx * grid.ny):
@@ -331,9 +318,7 @@ def _first_valid(
 ) -> tuple[Tensor, Tensor]:
     """For each of n rows, the first valid of up to ``tries`` candidates.
 
-    draw(m, k) -> [m, k, width] candidates for m rows; valid(rows, cand) -> bool [m, k], or
-    int64 [m]: the index of each row's first valid candidate, -1 for none (the C scan,
-    ``ckernels.first_clear``). A first batch of ``_FIRST_TRIES`` candidates goes to every row;
+    draw(m, k) -> [m, k, width] candidates for m rows; valid(rows, cand) -> bool [m, k]. A first batch of ``_FIRST_TRIES`` candidates goes to every row;
     rows still empty draw their remaining tries at once. Returns (values [n, width], found
     bool [n])."""
     out = torch.zeros(n, width, dtype=_DTYPE, device=device)
@@ -344,11 +329,8 @@ def _first_valid(
             continue
         cand = draw(rows.numel(), k)
         ok = valid(rows, cand)
-        if ok.dtype == torch.bool:
-            has = ok.any(1)
-            first = ok.to(torch.uint8).argmax(1)  # argmax returns the first maximal index
-        else:
-            has, first = ok >= 0, ok.clamp(min=0)
+        has = ok.any(1)
+        first = ok.to(torch.uint8).argmax(1)  # argmax returns the first maximal index
         pick = cand[torch.arange(rows.numel(), device=device), first]
         out[rows[has]] = pick[has]
         found[rows[has]] = True
@@ -357,10 +339,6 @@ def _first_valid(
 
 
 def _rand(g: torch.Generator, *shape: int) -> Tensor:
-    """``torch.rand(*shape, generator=g)`` in float32 on g's device; on CPU through the C replay
-    of its generator (``ckernels.uniform``: the same numbers, faster for long runs)."""
-    if g.device.type == "cpu":
-        return ckernels.uniform(g, math.prod(shape)).view(shape)
     return torch.rand(*shape, generator=g, device=g.device, dtype=_DTYPE)
 
 
@@ -402,9 +380,6 @@ def _sample_layouts(cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generato
             def ok_obst(r: Tensor, c: Tensor, placed: Tensor = placed, placed_m: Tensor = placed_m) -> Tensor:
                 clear = (_rect_gap(c.unsqueeze(-2), tala) >= s.d_safe).all(-1)  # [m, k]
                 if slot:
-                    first = ckernels.first_clear(c, clear, r, placed, placed_m)
-                    if first is not None:
-                        return first
                     hit = _rects_overlap(c.unsqueeze(-2), placed[r].unsqueeze(-3)) & placed_m[r].unsqueeze(-2)
                     clear &= ~hit.any(-1)
                 return clear
@@ -444,8 +419,7 @@ def _sample_layouts(cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generato
     def ok_ge(r: Tensor, c: Tensor) -> Tensor:
         b = pairs[r, 0]
         off_tala = ~_point_in_rect(c.unsqueeze(-2), tala).any(-1)
-        first = ckernels.first_clear(c, off_tala, b, zones, zones_m, s.d_min)
-        return first if first is not None else off_tala & _clear_of(c, zones[b], zones_m[b], s.d_min)
+        return off_tala & _clear_of(c, zones[b], zones_m[b], s.d_min)
 
     val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, draw_point, ok_ge, 2, dev)
     ge_pos = torch.zeros(n, cfg.ge.count.padded, 2, dtype=_DTYPE, device=dev)
@@ -464,8 +438,7 @@ def _sample_layouts(cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generato
     def ok_ou(r: Tensor, c: Tensor) -> Tensor:
         b = pairs[r, 0]
         far = torch.linalg.vector_norm(c - start, dim=-1) >= s.d_safe
-        first = ckernels.first_clear(c, far, b, obst, obst_m, s.d_min)
-        return first if first is not None else far & _clear_of(c, obst[b], obst_m[b], s.d_min)
+        return far & _clear_of(c, obst[b], obst_m[b], s.d_min)
 
     val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, draw_point, ok_ou, 2, dev)
     ou_pos = torch.zeros(n, cfg.ou.count.padded, 2, dtype=_DTYPE, device=dev)
@@ -724,7 +697,7 @@ class Scenario:
         return cls(**kw)
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
-        _write_json_atomic(path, self.to_dict())
+        dump_json(path, self.to_dict(), indent=None, allow_nan=False)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> "Scenario":
@@ -741,22 +714,6 @@ def _read_json(path: str | os.PathLike[str]) -> Any:
 
 def _reject_constant(name: str) -> float:
     raise ValueError(f"non-finite number {name} in scenario JSON")
-
-
-def _write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
-    # write beside the target, then rename over it: readers never see a half-written file
-    path = os.fspath(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=os.path.dirname(os.path.abspath(path)))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, allow_nan=False)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def stack_scenarios(scenarios: Sequence[Scenario], cfg: EnvConfig, device: torch.device | str | None = None) -> TensorDict:
@@ -832,7 +789,7 @@ def unstack_scenarios(td: TensorDictBase) -> list[Scenario]:
 
 def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) -> None:
     """Write a list of scenarios (an evaluation set) as one JSON list, atomically."""
-    _write_json_atomic(path, [sc.to_dict() for sc in scenarios])
+    dump_json(path, [sc.to_dict() for sc in scenarios], indent=None, allow_nan=False)
 
 
 def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:

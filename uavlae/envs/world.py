@@ -11,22 +11,51 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from uavlae.envs import ckernels
 from uavlae.envs import geodesic as geo
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
 
-STATIC_KEYS = (
-    "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask",
-    "ge_pos", "ge_mask", "takeoff", "landing", "data_total",
+# The raw state, one row per entry: its shape after the batch dimension B (in the padded sizes
+# G GEs, K OUs, NFZ / RZ / BZ zones of each kind, H·W geodesic grid cells), its dtype, whether it
+# is fixed for the episode, and what it holds. The env's specs, the step's key lists and
+# docs/env_contract.md (tests/test_env.py checks it) all come from this table.
+STATE_TABLE: tuple[tuple[str, tuple[int | str, ...], torch.dtype, bool, str], ...] = (
+    ("nfz", ("NFZ", 4), torch.float32, True, "no-fly zones, (x0, y0, x1, y1)"),
+    ("nfz_mask", ("NFZ",), torch.bool, True, "present no-fly zones"),
+    ("rz", ("RZ", 4), torch.float32, True, "residential zones"),
+    ("rz_mask", ("RZ",), torch.bool, True, "present residential zones"),
+    ("bz", ("BZ", 4), torch.float32, True, "building zones"),
+    ("bz_mask", ("BZ",), torch.bool, True, "present building zones"),
+    ("ge_pos", ("G", 2), torch.float32, True, "GE positions"),
+    ("ge_mask", ("G",), torch.bool, True, "present GEs"),
+    ("takeoff", (4,), torch.float32, True, "TA rectangle"),
+    ("landing", (4,), torch.float32, True, "LA rectangle"),
+    ("data_total", (), torch.float32, True, "data volume of all GEs at the start"),
+    ("position", (2,), torch.float32, False, "DCU position"),
+    ("velocity", (2,), torch.float32, False, "DCU velocity in the last slot"),
+    ("energy_used", (), torch.float32, False, "cumulative energy, J"),
+    ("energy_left", (), torch.float32, False, "E_limit - energy_used"),
+    ("slot_data", (), torch.float32, False, "data collected in the last slot"),
+    ("data_collected", (), torch.float32, False, "data collected so far"),
+    ("step", (), torch.int64, False, "slots since the reset"),
+    ("ge_remaining", ("G",), torch.float32, False, "data left at each GE"),
+    ("ou_pos", ("K", 2), torch.float32, False, "OU positions"),
+    ("ou_vel", ("K", 2), torch.float32, False, "OU velocities"),
+    ("ou_mask", ("K",), torch.bool, False, "present OUs"),
+    ("served_ge", (), torch.int64, False, "GE served in the last slot, -1 none"),
+    ("d_bz", (), torch.float32, False, "distance to the nearest BZ (0 inside, +inf when none)"),
+    ("d_nfz", (), torch.float32, False, "distance to the nearest NFZ"),
+    ("d_rz", (), torch.float32, False, "distance to the nearest RZ"),
+    ("d_ou", (), torch.float32, False, "distance to the nearest OU"),
+    ("d_boundary", (), torch.float32, False, "distance to the area boundary (0 outside)"),
+    ("d_la", (), torch.float32, False, "distance to LA (0 inside)"),
 )
-DYNAMIC_KEYS = (
-    "position", "velocity", "energy_used", "energy_left", "slot_data", "data_collected",
-    "step", "ge_remaining", "ou_pos", "ou_vel", "ou_mask", "served_ge",
-    "d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la",
-)
+GEO_KEY = "geo_field"  # only when uses_geodesic(cfg)
+GEO_ROW = (GEO_KEY, ("G+1", "H·W"), torch.float32, True,
+           "distance fields to LA and each GE, with reward.progress_metric: geodesic")
+STATIC_KEYS = tuple(row[0] for row in STATE_TABLE if row[3])
+DYNAMIC_KEYS = tuple(row[0] for row in STATE_TABLE if not row[3])
 STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
-GEO_KEY = "geo_field"  # [B, G + 1, H·W], only with reward.progress_metric = geodesic
 
 
 def uses_geodesic(cfg: EnvConfig) -> bool:
@@ -37,6 +66,25 @@ def state_keys(cfg: EnvConfig) -> tuple[str, ...]:
     """The raw state entries of this configuration: ``STATE_KEYS``, plus ``geo_field`` when the
     geodesic progress metric is in use."""
     return STATE_KEYS + ((GEO_KEY,) if uses_geodesic(cfg) else ())
+
+
+def state_shapes(cfg: EnvConfig) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """``{key: (shape after the batch dimension, dtype)}`` of this configuration's raw state."""
+    h, w = geo.grid_shape(cfg)
+    g = cfg.ge.count.padded
+    size = {"G": g, "K": cfg.ou.count.padded, "NFZ": cfg.zones.n_nfz.padded, "RZ": cfg.zones.n_rz.padded,
+            "BZ": cfg.zones.n_bz.padded, "G+1": g + 1, "H·W": h * w}
+    rows = {row[0]: row for row in (*STATE_TABLE, GEO_ROW)}
+    return {k: (tuple(size.get(d, d) for d in rows[k][1]), rows[k][2]) for k in state_keys(cfg)}
+
+
+def state_table_markdown() -> str:
+    """The raw state as the Markdown table of ``docs/env_contract.md``."""
+    lines = ["| key | shape | dtype | fixed per episode | holds |", "|---|---|---|---|---|"]
+    for key, shape, dtype, static, what in (*STATE_TABLE, GEO_ROW):
+        dims = ", ".join(["B", *map(str, shape)])
+        lines.append(f"| `{key}` | `[{dims}]` | {str(dtype).removeprefix('torch.')} | {'yes' if static else 'no'} | {what} |")
+    return "\n".join(lines)
 
 
 EVENT_KEYS = (
@@ -150,19 +198,10 @@ def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
 
 def draw_noise(state: dict[str, Tensor], cfg: EnvConfig, generator: torch.Generator) -> dict[str, Tensor]:
     """Every random number one slot needs, drawn from the env's generator (outside the pure step):
-    the OU draws (physics.ou_noise), then the GE tie-break noise. On CPU in float32 the C replay of
-    torch's generator draws and transforms them in one pass (ckernels.uniform_runs: the same
-    numbers); elsewhere torch.rand and physics.ou_noise."""
+    the OU draws (physics.ou_noise), then the GE tie-break noise."""
     ou_pos, ge = state["ou_pos"], state["ge_pos"]
-    spec = [*ph.ou_noise_spec(ou_pos.shape[:-1], cfg.ou, cfg.motion), ("ge_tie", ge.shape[:-1], "*", 1.0)]
-    if ou_pos.device.type == "cpu" and ou_pos.dtype == ge.dtype == torch.float32:
-        drawn = ckernels.uniform_runs(generator, [(s, op, p) for _, s, op, p in spec])
-        if drawn is not None:
-            return {name: t for (name, *_), t in zip(spec, drawn)}
-    u = [torch.rand(s, generator=generator, device=x.device, dtype=x.dtype)
-         for (_, s, _, _), x in zip(spec, [ou_pos] * 4 + [ge])]
-    noise = ph.ou_noise(spec[0][1], cfg.ou, cfg.motion, generator, uniforms=u[:4])
-    noise["ge_tie"] = u[4]
+    noise = ph.ou_noise(ou_pos.shape[:-1], cfg.ou, cfg.motion, generator, ou_pos.device, ou_pos.dtype)
+    noise["ge_tie"] = torch.rand(ge.shape[:-1], generator=generator, device=ge.device, dtype=ge.dtype)
     return noise
 
 
@@ -208,18 +247,10 @@ def world_step_core(
 
     # Hover phase at L_{t+1}: TDMA service of at most one GE (SPEC §3).
     tie = noise["ge_tie"]
-    if ckernels.applies(p1):
-        # the compiled CPU step: channel and service in C, the rate only for the eligible GEs
-        td, served, remaining = ckernels.serve_cpu(
-            p1, state["ge_pos"], state["ge_remaining"], state["ge_mask"], tie, float(a.altitude),
-            float(cfg.ge.tx_power), float(cfg.channel.alpha), float(cfg.channel.noise),
-            float(cfg.channel.snr_threshold), float(m.t_hover),
-        )
-    else:
-        snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
-        td, served, remaining = ph.serve_ge(
-            snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
-        )
+    snr, rate = ph.channel(p1, state["ge_pos"], a.altitude, cfg.ge.tx_power, cfg.channel)
+    td, served, remaining = ph.serve_ge(
+        snr, rate, state["ge_remaining"], state["ge_mask"], cfg.channel.snr_threshold, m.t_hover, tie
+    )
     energy_used = state["energy_used"] + ph.slot_energy(speed, cfg.energy, m)
     energy_left = cfg.energy.e_limit - energy_used
     data_collected = state["data_collected"] + td
@@ -265,19 +296,6 @@ def world_step_core(
     return nxt, events, terms, cost, terminated, truncated
 
 
-def _stable_order(key: Tensor) -> Tensor:
-    """``torch.argsort(key, dim=-1, stable=True)`` for a short last dimension (the K OUs), from
-    the K x K comparisons: the rank of entry i is the number of smaller entries plus the equal
-    ones before it, and slot r takes the entry of rank r. Elementwise, so the compiled step fuses
-    it into its loops (argsort was a separate 0.3 ms sort of 4096 rows of 7 at B = 4096)."""
-    k = key.shape[-1]
-    a, b = key.unsqueeze(-1), key.unsqueeze(-2)  # a[..., i, j] = key_i, b[..., i, j] = key_j
-    before = torch.ones(k, k, dtype=torch.bool, device=key.device).tril(-1)  # j < i
-    rank = ((b < a) | ((b == a) & before)).sum(-1)  # [..., K]
-    slots = torch.arange(k, device=key.device)
-    return (rank.unsqueeze(-2) == slots.unsqueeze(-1)).to(torch.uint8).argmax(-1)  # [..., r]: i of rank r
-
-
 class ObservationLayout:
     """Normalisation constants and sizes of the flat observation (SPEC §6)."""
 
@@ -288,12 +306,8 @@ class ObservationLayout:
         self.n_zone = (cfg.zones.n_nfz.padded, cfg.zones.n_rz.padded, cfg.zones.n_bz.padded)
         self.extra = cfg.extra_features
         self.ego = cfg.ego_features
-        # the columns before the ego ones (the C kernel's, in the compiled CPU step), then those
-        self.pre_ego_size = ckernels.obs_width(self.n_ge, *self.n_zone, self.n_ou, self.extra)
-        self.size = self.pre_ego_size + (8 if self.ego else 0)
-        # False: the compiled CPU step keeps Inductor's build (tests and benchmarks compare them)
-        self.c_kernel = True
         self._divisor = self._column_divisors()
+        self.size = self._divisor.numel()
 
     def _column_divisors(self) -> Tensor:
         """The normalising divisor of every observation column (1 for flags and counts), in the
@@ -314,39 +328,13 @@ class ObservationLayout:
             # target vector / diagonal, its unit direction, nearest BZ and NFZ point vectors
             # (saturated at obs_distance_scale, divided by it)
             cols += [a.diagonal] * 2 + [1.0] * 2 + [cfg.obs_distance_scale] * 4
-        assert len(cols) == self.size
         return torch.tensor(cols, dtype=torch.float64)
 
     def build(self, s: dict[str, Tensor]) -> Tensor:
         """The normalised observation ``[B, size]`` of the raw state ``s`` (SPEC §6)."""
         p = s["position"]
-        div = self._divisor.to(device=p.device, dtype=p.dtype)
-        if self.c_kernel and ckernels.applies(p):
-            # the compiled CPU step: the columns before the ego ones in one C pass over the rows
-            # (Inductor's loops wrote them part by part, a pass over the batch each)
-            cfg, width = self.cfg, self.pre_ego_size
-            obs = ckernels.obs_cpu(
-                *(s[name] for name, _, _ in ckernels.OBS_INPUTS), div[:width], float(cfg.safety.perception_radius),
-                self.extra, float(cfg.obs_distance_scale),
-            )
-            ego = self._ego_parts(s)
-            return torch.cat([obs, *self._divided(ego, div, width)], dim=-1) if ego else obs
         parts = self._base_parts(s) + self._extra_parts(s) + self._ego_parts(s)
-        if torch.compiler.is_compiling():
-            # the same divisions, each part's fused into the loop that writes it into the row:
-            # Inductor otherwise makes a second pass over the whole [B, size] observation
-            # (3.1 -> 2.0 ms for this build at B = 4096 on CPU)
-            return torch.cat(self._divided(parts, div, 0), dim=-1)
-        return torch.cat(parts, dim=-1) / div
-
-    @staticmethod
-    def _divided(parts: list[Tensor], div: Tensor, start: int) -> list[Tensor]:
-        """Each part divided by its columns' divisors, the first starting at column ``start``."""
-        out = []
-        for t in parts:
-            out.append(t / div[start : start + t.shape[-1]])
-            start += t.shape[-1]
-        return out
+        return torch.cat(parts, dim=-1) / self._divisor.to(device=p.device, dtype=p.dtype)
 
     def _base_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
         """The raw (unnormalised) base columns, ``[B, n]`` each: GEs, zones, OUs, the DCU."""
@@ -370,7 +358,7 @@ class ObservationLayout:
         rel = s["ou_pos"] - p.unsqueeze(-2)
         dist = torch.linalg.vector_norm(rel, dim=-1)
         visible = s["ou_mask"] & (dist <= cfg.safety.perception_radius)
-        order = _stable_order(dist.masked_fill(~visible, float("inf")))
+        order = torch.argsort(dist.masked_fill(~visible, float("inf")), dim=-1, stable=True)
         vis = torch.gather(visible, -1, order).to(p.dtype)
         idx2 = order.unsqueeze(-1).expand(-1, -1, 2)
         # (x / scale) * vis == (x * vis) / scale exactly: vis is 0 or 1

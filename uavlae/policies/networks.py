@@ -78,12 +78,21 @@ def action_bounds(action_spec: TensorSpec) -> Bounded:
     return Bounded(low[0].clone(), high[0].clone(), shape=(act_dim,), dtype=action_spec.dtype, device=action_spec.device)
 
 
+# The scale head: softplus(x + b) + SCALE_MIN with b such that a zero input gives SCALE_AT_ZERO,
+# floored at SCALE_LB (tensordict's NormalParamExtractor defaults, spelled out so that the
+# hand-written SAC gradients read the same numbers).
+SCALE_AT_ZERO = 1.0
+SCALE_MIN = 0.01
+SCALE_LB = 1e-4
+
+
 def _tanh_normal_actor(
     obs_dim: int, action_spec: TensorSpec, hidden: Sequence[int], activation: str, return_log_prob: bool
 ) -> ProbabilisticActor:
     box = action_bounds(action_spec)
     act_dim = box.shape[-1]
-    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation), NormalParamExtractor())
+    extractor = NormalParamExtractor(scale_mapping=f"biased_softplus_{SCALE_AT_ZERO}_{SCALE_MIN}", scale_lb=SCALE_LB)
+    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation), extractor)
     params = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         params,
