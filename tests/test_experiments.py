@@ -382,3 +382,27 @@ def test_ray_sweep_on_a_local_instance(tmp_path):
     assert all(f["frames"] == 0 and 0 <= f["eval/DCR"] <= 1 for f in finals)
     pids = {json.loads((root / "train" / "random" / f"seed{s}" / "meta.json").read_text())["pid"] for s in (0, 1)}
     assert len(pids) == 2 and os.getpid() not in pids  # two Ray workers, not this process
+
+
+def test_wandb_runs_are_grouped_and_tagged_by_sweep_and_method_with_trajectory_images(tmp_path):
+    from uavlae.factories import make_logger
+
+    cfg = _cfg("+sweep=train", "+profile=quick", "+exp=sac", "seed=1", "logger.wandb.mode=offline")
+    logger = make_logger(cfg, tmp_path, "sac-test", {"name": "sac"})
+    try:
+        run = logger.loggers["wandb"].experiment
+        assert run.group == "train"
+        assert set(run.tags) == {"method:sac", "seed:1", "sweep:train", "point:default", "profile:quick"}
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        plt.plot([0, 1], [0, 1])
+        plt.savefig(tmp_path / "trajectory_0.png")
+        plt.close()
+        logger.log_metrics({"eval/DCR": 0.5}, step=64)
+        logger.log_images({"eval/trajectory_0": tmp_path / "trajectory_0.png"}, step=64)
+    finally:
+        logger.close()
+    assert list((tmp_path / "wandb").glob("offline-run-*/files/media/images/eval/trajectory_0_*.png"))
