@@ -427,7 +427,7 @@ class Style:
 
 def _save(fig: Any, out: Path, stem: str, note: str) -> list[str]:
     if note:
-        fig.text(0.01, 0.005, note, fontsize=7, ha="left", va="bottom", style="italic")
+        fig.text(0.01, -0.02, note, fontsize=7, ha="left", va="top", style="italic")  # below the axes' labels
     files = []
     for ext in ("png", "pdf"):
         f = out / f"{stem}.{ext}"
