@@ -86,8 +86,10 @@ PROFILE ?= quick
 EXP_ROOT ?= runs/$(PROFILE)
 LAUNCHER ?= local
 EXP_ARGS ?=
-TRAIN_SWEEP = $(BIN)/python -m uavlae.train -m +profile=$(PROFILE) experiment.root=$(EXP_ROOT) hydra/launcher=$(LAUNCHER) $(EXP_ARGS)
-EVAL_SWEEP = $(BIN)/python -m uavlae.evaluate -m +profile=$(PROFILE) experiment.root=$(EXP_ROOT) hydra/launcher=$(LAUNCHER) $(EXP_ARGS)
+# `+sweep=NAME` goes first: the profile, composed after it, replaces the sweep's seeds and sizes
+PROFILE_ARGS = +profile=$(PROFILE) experiment.root=$(EXP_ROOT) hydra/launcher=$(LAUNCHER) $(EXP_ARGS)
+TRAIN_SWEEP = $(BIN)/python -m uavlae.train -m
+EVAL_SWEEP = $(BIN)/python -m uavlae.evaluate -m
 SCENARIOS := n_ou n_ge n_nfz n_bz n_rz
 SENSITIVITY := actor_lr critic_lr batch_size r1 r2 r5 r8
 # The sensitivity method and grids; the quick profile's are reduced (conf/sweep/sens_*.yaml: the paper's)
@@ -100,38 +102,37 @@ SENS_GRID_r1 ?=
 SENS_GRID_r2 ?=
 SENS_GRID_r5 ?=
 SENS_GRID_r8 ?=
-SENS_FRAMES ?=
 
 .PHONY: experiments-train experiments-scenarios experiments-sensitivity experiments-llm experiments-report quick quick-llm paper long-sac
 experiments-train: $(STAMP)
-	$(TRAIN_SWEEP) +sweep=train
+	$(TRAIN_SWEEP) +sweep=train $(PROFILE_ARGS)
 
 experiments-scenarios: $(STAMP)
-	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s || exit 1; done
+	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) || exit 1; done
 
 experiments-sensitivity: $(STAMP)
-	$(foreach s,$(SENSITIVITY),$(TRAIN_SWEEP) +sweep=sens_$(s) +exp=$(SENS_EXP) seed=$(SENS_SEEDS) $(SENS_FRAMES) $(SENS_GRID_$(s)) && ) true
+	$(foreach s,$(SENSITIVITY),$(TRAIN_SWEEP) +sweep=sens_$(s) $(PROFILE_ARGS) +exp=$(SENS_EXP) seed=$(SENS_SEEDS) $(SENS_GRID_$(s)) && ) true
 
 # The LLM methods: trained (the LLM acts while training), then evaluated like the others (their
 # actor alone: no LLM call); the LLM alone flies the training evaluation set under LLM_ALONE_ARGS.
 LLM_ALONE_ARGS ?=
 experiments-llm: $(STAMP)
-	$(TRAIN_SWEEP) +sweep=train_llm +exp=sac_llm
-	$(TRAIN_SWEEP) +sweep=train_llm +exp=llm $(LLM_ALONE_ARGS)
-	$(TRAIN_SWEEP) +sweep=train_fp
-	$(TRAIN_SWEEP) +sweep=llm_dth
-	$(TRAIN_SWEEP) +sweep=llm_prompt
-	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s +exp=sac_llm || exit 1; \
-		$(EVAL_SWEEP) +sweep=scenario_$$s +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS)
+	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS)
+	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm || exit 1; \
+		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
 		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
 
 experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
 
-# quick: the grids of the sensitivity figures cut to the default and two values around it (one
-# for the batch size), two seeds, a third of the training frames (benchmarks/quick_profile_fps.json
-# sizes it), plain SAC as the method (the LLM's are in quick-llm)
-QUICK_SENS := PROFILE=quick SENS_EXP=sac SENS_SEEDS=0,1 SENS_FRAMES=trainer.total_frames=100000 \
+# quick: the grids of the sensitivity figures cut to the default and one value on each side, the
+# profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in
+# quick-llm); benchmarks/quick_profile_fps.json adds up what this costs
+QUICK_SENS := PROFILE=quick_sensitivity EXP_ROOT=runs/quick SENS_EXP=sac SENS_SEEDS=0,1 \
 	SENS_GRID_actor_lr=algo.actor_lr=3.0e-5,1.0e-4,3.0e-4 SENS_GRID_critic_lr=algo.critic_lr=1.0e-4,3.0e-4,1.0e-3 \
 	SENS_GRID_batch_size=trainer.batch_size=64,256,512 SENS_GRID_r1=env.reward.sigma.0=4.0,8.0,16.0 \
 	SENS_GRID_r2=env.reward.sigma.1=0.2,0.4,0.8 SENS_GRID_r5=env.reward.sigma.4=0.3,0.6,1.2 SENS_GRID_r8=env.reward.sigma.7=0.5,1.0,2.0

@@ -73,14 +73,26 @@ def time_eval(tmp: Path) -> float:
     return time.perf_counter() - t0
 
 
+# `make quick`'s sensitivity grids (Makefile QUICK_SENS): the default setting and one value on each
+# side of it on each of the seven axes
+SENS_POINTS = 1 + 2 * 7
+
+
+def _n(values: object) -> int:
+    return len(str(values).split(","))
+
+
 def estimate(rates: dict[str, float], eval_s: float, compile_s: float) -> dict:
-    """The non-LLM quick profile as `make quick` runs it (grids and seeds: the Makefile's)."""
-    q = _cfg("+exp=sac")
-    train_frames, sens_frames = int(q.trainer.total_frames), int(q.trainer.total_frames) // 3
-    seeds = 3
+    """The non-LLM quick profile as `make quick` runs it: conf/profile/quick.yaml's frames and
+    seeds for the train sweep, quick_sensitivity.yaml's for the sensitivity sweeps."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        q = compose("config", overrides=["+sweep=train", "+profile=quick", "+exp=sac"], return_hydra_config=True)
+        s = compose("config", overrides=["+sweep=sens_r1", "+profile=quick_sensitivity", "+exp=sac"], return_hydra_config=True)
+    train_frames, sens_frames = int(q.trainer.total_frames), int(s.trainer.total_frames)
+    seeds, sens_seeds = _n(q.hydra.sweeper.params.seed), _n(s.hydra.sweeper.params.seed)
     train = sum(seeds * (train_frames / rates[m] + compile_s) for m in LEARNERS)
     controllers = 2 * seeds * eval_s  # heuristic and random on the training set
-    sens_points, sens_seeds = 1 + 2 * 3 + 2 * 4, 2  # default + two values of each lr / batch axis + two of each weight
+    sens_points = SENS_POINTS
     sens = sens_points * sens_seeds * (sens_frames / rates["sac"] + compile_s)
     settings = 5 + 5 + 3 + 3 + 3
     scen = settings * (len(LEARNERS) + 2) * seeds * eval_s

@@ -85,6 +85,10 @@ def test_sensitivity_runs_share_the_default_point():
     c = _cfg("+sweep=sens_r8", "+exp=sac", "env.reward.sigma.7=2.0")
     assert a.run_dir == b.run_dir != c.run_dir
     assert c.env.reward.sigma[7] == 2.0 and c.run_dir.endswith("_w8.0_0.4_0.6_2.0/sac/seed0")
+    # the profile comes after the sweep on the command line and sets its seeds and budget
+    q = _cfg("+sweep=sens_r1", "+profile=quick_sensitivity", hydra=True)
+    assert q.hydra.sweeper.params.seed == "0,1" and q.trainer.total_frames == 120000
+    assert q.experiment.profile == "quick" and q.env.reward.progress_weight > 0
 
 
 @pytest.mark.parametrize("launcher, target", [
