@@ -530,7 +530,7 @@ def fig_radar(rows: list[dict[str, Any]], style: Style, out: Path, note: str) ->
 def sweep_commands(root: Path) -> list[str]:
     """The multirun commands that wrote ``root`` (from Hydra's ``multirun.yaml`` of each)."""
     out = []
-    for f in sorted(root.glob(".multirun/*/*/multirun.yaml")):
+    for f in sorted(root.glob(".multirun/*/*/multirun.yaml"), key=lambda f: f.parent.name):  # in the order they ran
         try:
             hc = yaml.safe_load(f.read_text())["hydra"]
             out.append(shlex.join(["python", "-m", f"uavlae.{hc['job']['name']}", "-m", *hc["overrides"]["task"]]))
