@@ -8,13 +8,15 @@ Each method trains ``--frames`` frames in-process with the profile's settings (c
 B = 64, 0.25 gradient steps a frame); its rate is taken after the random warm-up and the
 compile (from the cumulative ``time/fps`` log: the frames and seconds between two log points).
 An evaluation of the profile's evaluation set is timed on its own. The estimate multiplies
-these by the runs ``make quick`` launches (the sweeps' grids as the Makefile passes them) and
-divides by two cores.
+these by the runs ``make quick`` launches (the sweeps' grids as the Makefile passes them), adds
+each run's fixed cost (warm-up, a cold compile, the final evaluation) and divides by two cores;
+``--estimate-only`` derives it again from the file's measured runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
@@ -103,12 +105,36 @@ def estimate(rates: dict[str, float], eval_s: float, compile_s: float) -> dict:
             "total_core_h": round(core_s / 3600, 2), "wall_h_on_2_cores": round(core_s / 2 / 3600, 2)}
 
 
+def fixed_cost(rows: list[dict]) -> float:
+    """Seconds a run costs beyond its post-warm-up frames at their rate: the random warm-up, the
+    compile of the training and evaluation envs and the final evaluation. The largest over the
+    methods (the first, which compiled with a cold cache): every run is charged a cold compile."""
+    return max(r["wall_s"] - (r["frames"] - r["from_frames"]) / r["train_fps_after_warmup"] for r in rows)
+
+
+def summarise(res: dict) -> dict:
+    rows = res["runs"]
+    res["fixed_cost_per_run_s"] = round(fixed_cost(rows), 1)
+    rates = {r["method"]: r["train_fps_after_warmup"] for r in rows}
+    if set(rates) == set(LEARNERS):
+        res["quick_profile_estimate"] = estimate(rates, res["heuristic_run_s"], res["fixed_cost_per_run_s"])
+    return res
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=16384, help="training frames of each method's measurement")
     p.add_argument("--methods", nargs="+", default=list(LEARNERS), choices=LEARNERS)
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--estimate-only", action="store_true",
+                   help="keep --out's measured runs and derive the estimate from them again (after a change of the profiles)")
     a = p.parse_args(argv)
+    if a.estimate_only:
+        res = summarise(json.loads(a.out.read_text()))
+        res["estimate_command"] = "python benchmarks/quick_profile_fps.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        dump_json(a.out, res)
+        print(res.get("quick_profile_estimate"))
+        return
     torch.set_num_threads(1)
     tmp = Path(tempfile.mkdtemp(prefix="quick_fps_"))
     try:
@@ -119,14 +145,9 @@ def main(argv: list[str] | None = None) -> None:
             print(rows[-1], flush=True)
         torch.compiler.reset()
         eval_s = time_eval(tmp)
-        rates = {r["method"]: r["train_fps_after_warmup"] for r in rows}
-        # the compile's one-off cost: the wall clock the rate does not explain, over the warm-up's share
-        compile_s = max(0.0, min(r["wall_s"] - r["frames"] / r["train_fps_after_warmup"] for r in rows))
-        res = {"command": "python benchmarks/quick_profile_fps.py " + " ".join(sys.argv[1:] if argv is None else argv),
-               "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(torch_threads=1),
-               "runs": rows, "heuristic_run_s": round(eval_s, 1), "fixed_cost_per_run_s": round(compile_s, 1)}
-        if set(rates) == set(LEARNERS):
-            res["quick_profile_estimate"] = estimate(rates, eval_s, compile_s)
+        res = summarise({"command": "python benchmarks/quick_profile_fps.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(torch_threads=1),
+                         "runs": rows, "heuristic_run_s": round(eval_s, 1)})
         dump_json(a.out, res)
         print(res.get("quick_profile_estimate"))
     finally:
