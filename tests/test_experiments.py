@@ -279,12 +279,13 @@ def test_report_cli_names_a_missing_dir(tmp_path):
 # ---------------------------------------------------------------------------- train / evaluate
 
 
-def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path):
+def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):
     from uavlae.checkpoint import LAST, PREV, checkpoint_dir, load_checkpoint
     from uavlae.train import run
 
+    monkeypatch.chdir(tmp_path)  # a relative run_dir, as the sweeps give it
     run_dir = tmp_path / "r"
-    args = ["+exp=sac", f"run_dir={run_dir}", "experiment.reuse=true", *TINY]
+    args = ["+exp=sac", "run_dir=r", "experiment.reuse=true", *TINY]
     first = run(_cfg(*args))
     assert first["frames"] == 128 and first["episodes"] >= 0
     stamp = (run_dir / "final_metrics.json").stat().st_mtime_ns
@@ -297,6 +298,7 @@ def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path):
     resumed = run(_cfg(*args))
     assert resumed["frames"] == 128 and resumed["eval/DCR"] == pytest.approx(first["eval/DCR"])
     assert resumed["actor_param_sum"] == pytest.approx(first["actor_param_sum"], rel=1e-6)
+    assert run(_cfg(*args)) == resumed  # finished now: kept as it is
     with pytest.raises(ValueError, match=r"holds a run of another config .*trainer.total_frames"):
         run(_cfg(*args[:-len(TINY)], *TINY[1:], "trainer.total_frames=256"))
 
@@ -336,6 +338,13 @@ def test_evaluate_honours_env_overrides(tmp_path):
     plain = json.loads((tmp_path / "plain" / "evaluation.json").read_text())
     assert plain["spec"]["env_overrides"] == {} and plain["eval_set_file"] == str(run_dir / "eval_set.json")
     assert plain["env"]["ou"]["count"] == {"min": 3, "max": 7, "pad": None}
+    # a controller (no checkpoint) flies the command line's world itself
+    ctrl = tmp_path / "random"
+    evaluate_checkpoint(_cfg("+exp=random", "env.ou.count.min=5", "env.ou.count.max=5", f"experiment.eval_dir={ctrl}",
+                             "trainer.eval_max_steps=10", "trainer.eval_episodes=2"), ["env.ou.count.min=5", "env.ou.count.max=5"])
+    rec = json.loads((ctrl / "evaluation.json").read_text())
+    assert rec["spec"]["checkpoint"] is None and rec["spec"]["method"] == "random" and rec["n_scenarios"] == 2
+    assert [len(sc.to_dict()["ou_pos"]) for sc in load_scenarios(ctrl / "eval_set.json")] == [5, 5]
     with pytest.raises(ValueError, match="exceeds its padding maximum pad=7"):
         evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", "env.ou.count.max=8", f"experiment.eval_dir={tmp_path / 'x'}"),
                             ["env.ou.count.max=8"])

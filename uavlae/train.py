@@ -73,6 +73,7 @@ REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", *RESUME_RUNTIME_KEYS)
 
 def _comparable(cfg_dict: dict[str, Any]) -> dict[str, Any]:
     c = OmegaConf.create(cfg_dict)
+    c.run_dir = str(Path(c.run_dir).resolve())  # a resumed run saves its run_dir resolved
     for key in REUSE_IGNORED_KEYS:
         if OmegaConf.select(c, key) is not None:
             OmegaConf.update(c, key, None, merge=False)
