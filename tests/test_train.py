@@ -256,6 +256,8 @@ def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path, exp):
     assert steps == sorted(set(steps)) and steps[-1] == 384
 
     straight = run(_cfg(f"+exp={exp}", f"run_dir={tmp_path / 'straight'}", *RESUME[:-1], "logger.wandb.mode=disabled"))
+    # everything but the training wall clock (summed over the resumed parts, so below the whole)
+    assert resumed.pop("wall_s") > 0 and straight.pop("wall_s") > 0
     assert resumed == straight
 
 

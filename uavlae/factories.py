@@ -60,6 +60,7 @@ class TrainerConfig(StrictModel):
     """``conf/trainer``: the loop's numbers."""
 
     total_frames: int = Field(ge=1)
+    total_episodes: int | None = Field(default=None, ge=1)
     env_batch_size: int = Field(ge=1)
     frames_per_batch: int = Field(ge=1)
     init_random_frames: int = Field(ge=0)
@@ -124,11 +125,24 @@ class LoggerConfig(StrictModel):
     wandb: WandbConfig
 
 
+class ExperimentConfig(StrictModel):
+    """The root ``experiment`` node: where a run sits in a sweep (conf/sweep/)."""
+
+    sweep: str | None
+    profile: str | None
+    root: str = Field(min_length=1)
+    point: str = Field(min_length=1)
+    method: str = Field(min_length=1)
+    tags: tuple[str, ...]
+    reuse: bool
+    eval_dir: str | None
+
+
 class RunConfig(StrictModel):
     """The root keys of ``conf/config.yaml``."""
 
     name: str = Field(min_length=1)
-    controller: Literal["learner", "heuristic", "llm"]
+    controller: Literal["learner", "heuristic", "llm", "random"]
     seed: int
     device: str
     threads: int = Field(ge=1)
@@ -146,6 +160,10 @@ def make_advisor_config(cfg: Any) -> AdvisorConfig:
     return _validate(AdvisorConfig, cfg, "advisor")
 
 
+def make_experiment_config(cfg: Any) -> ExperimentConfig:
+    return _validate(ExperimentConfig, cfg, "experiment")
+
+
 def make_logger_config(cfg: Any) -> LoggerConfig:
     return _validate(LoggerConfig, cfg, "logger")
 
@@ -154,11 +172,12 @@ def validate_config(cfg: DictConfig) -> None:
     """Validate every group of a composed config; ``ValueError`` names the bad field."""
     root = {k: cfg[k] for k in RunConfig.model_fields}
     run = _validate(RunConfig, root, "config")
-    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic"}
+    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "experiment"}
     unknown = sorted(set(cfg.keys()) - known - {"hydra"})
     if unknown:
         raise ValueError(f"unknown top-level config keys {unknown}")
     make_env_config(cfg.env)
+    make_experiment_config(cfg.experiment)
     make_trainer_config(cfg.trainer)
     make_logger_config(cfg.logger)
     adv = make_advisor_config(cfg.advisor)
@@ -274,15 +293,22 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
     )
 
 
-def make_controller(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
-    """The evaluation-only controllers: ``heuristic`` (the greedy baseline) or ``llm`` (the
-    LLM at every step, the heuristic for failed answers when ``advisor.fallback=heuristic``)."""
+def make_controller(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any = None) -> Any:
+    """The evaluation-only controllers: ``heuristic`` (the greedy baseline), ``llm`` (the
+    LLM at every step, the heuristic for failed answers when ``advisor.fallback=heuristic``)
+    or ``random`` (uniform in ``action_spec``'s box, seeded by ``cfg.seed``)."""
+    if cfg.controller == "random":
+        from uavlae.policies.random import UniformRandomPolicy
+
+        if action_spec is None:
+            raise ValueError("controller=random needs the env's action_spec")
+        return UniformRandomPolicy(action_spec, seed=int(cfg.seed))
     heuristic = make_heuristic(cfg, env_cfg)
     if cfg.controller == "heuristic":
         return heuristic
     if cfg.controller == "llm":
         return make_policy(cfg, heuristic, env_cfg)
-    raise ValueError(f"controller must be heuristic or llm here, got {cfg.controller!r}")
+    raise ValueError(f"controller must be heuristic, llm or random here, got {cfg.controller!r}")
 
 
 # ---------------------------------------------------------------------------- logging
@@ -305,7 +331,8 @@ def git_info() -> dict[str, Any]:
 
 def package_versions() -> dict[str, str | None]:
     out: dict[str, str | None] = {"python": sys.version.split()[0]}
-    for name in ("uavlae", "torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "numpy", "pydantic", "wandb"):
+    for name in ("uavlae", "torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "numpy", "pydantic", "wandb",
+                 "matplotlib", "xllamacpp"):
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
@@ -330,6 +357,19 @@ class RunLogger:
             return
         for lg in self.loggers.values():
             lg.log_metrics(clean, step=int(step))
+
+    def log_images(self, images: Mapping[str, Path], step: int) -> None:
+        """PNG files (the evaluation trajectories) as wandb images at ``step``; the CSV logger
+        has them on disk already."""
+        lg = self.loggers.get("wandb")
+        if lg is None or not images:
+            return
+        import wandb
+
+        prefix = next(iter(images)).rpartition("/")[0]
+        payload: dict[str, Any] = {k: wandb.Image(str(p)) for k, p in images.items()}
+        payload[f"{prefix}/step" if prefix else "step"] = int(step)  # the group's step, as torchrl's logger keys it
+        lg.experiment.log(payload)
 
     def log_hparams(self, cfg: Mapping[str, Any]) -> None:
         for name, lg in self.loggers.items():
@@ -378,6 +418,7 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
     from torchrl.record.loggers import CSVLogger
 
     lc = make_logger_config(cfg.logger)
+    ex = make_experiment_config(cfg.experiment)
     loggers: dict[str, Any] = {}
     if lc.csv:
         loggers["csv"] = CSVLogger(exp_name="logs", log_dir=str(run_dir))
@@ -391,16 +432,42 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
             id=run_id,
             project=lc.wandb.project,
             entity=lc.wandb.entity,
-            group=lc.wandb.group,
-            tags=list(lc.wandb.tags),
+            group=lc.wandb.group or ex.sweep,
+            tags=wandb_tags(lc.wandb.tags, ex, int(cfg.seed)),
             config=dict(hparams),
             mode=lc.wandb.mode,
         )
     return RunLogger(loggers, run_id)
 
 
+def wandb_tags(tags: Any, ex: ExperimentConfig, seed: int) -> list[str]:
+    """The run's wandb tags: the configured ones, then its sweep, method, profile, point and
+    seed (a dashboard filters each figure's runs by these), each cut to wandb's 64 characters."""
+    out = list(tags) + list(ex.tags) + [f"method:{ex.method}", f"seed:{seed}"]
+    if ex.sweep:
+        out += [f"sweep:{ex.sweep}", f"point:{ex.point}"]
+    if ex.profile:
+        out.append(f"profile:{ex.profile}")
+    return list(dict.fromkeys(t[:64] for t in out))
+
+
 def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:
-    return {"git": git_info(), "packages": package_versions(), "argv": list(sys.argv), "pid": os.getpid()}
+    """The commit, the package versions and the command: for a Hydra job (a sweep's too, whose
+    worker's argv is the launcher's) the one command that reruns this run alone."""
+    import shlex
+
+    meta: dict[str, Any] = {"git": git_info(), "packages": package_versions(), "argv": list(sys.argv), "pid": os.getpid()}
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        hc = HydraConfig.get()
+        task = list(hc.overrides.task)
+        module = "uavlae.evaluate" if "evaluate" in str(hc.job.name) else "uavlae.train"
+        meta["overrides"] = task
+        meta["command"] = shlex.join(["python", "-m", module, *task])
+    except ValueError:  # not a Hydra job (the tests call run() in-process)
+        pass
+    return meta
 
 
 def redact_secrets(cfg_dict: dict[str, Any]) -> dict[str, Any]:

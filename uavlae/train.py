@@ -60,6 +60,7 @@ from uavlae.factories import (
     trim_csv_scalars,
     validate_config,
 )
+from uavlae.files import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,53 @@ REPLAY_KEYS = (
 
 def _resolved(cfg: DictConfig) -> dict[str, Any]:
     return redact_secrets(OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+# Keys that may differ between a sweep's re-run and the run it finds in its run_dir.
+REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", *RESUME_RUNTIME_KEYS)
+
+
+def _comparable(cfg_dict: dict[str, Any]) -> dict[str, Any]:
+    c = OmegaConf.create(cfg_dict)
+    c.run_dir = str(Path(c.run_dir).resolve())  # a resumed run saves its run_dir resolved
+    for key in REUSE_IGNORED_KEYS:
+        if OmegaConf.select(c, key) is not None:
+            OmegaConf.update(c, key, None, merge=False)
+    return OmegaConf.to_container(c)  # type: ignore[return-value]
+
+
+def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
+    """With ``experiment.reuse``: what ``cfg.run_dir`` holds of this run. ``("done", final
+    metrics)`` for a finished run, ``("resume", None)`` for one with a checkpoint, ``("new",
+    None)`` otherwise. A run_dir that holds a run of another config is an error (a sweep re-run
+    with changed settings must not mix the two)."""
+    run_dir = Path(cfg.run_dir)
+    saved_file = run_dir / "config.json"
+    if not cfg.experiment.reuse or not saved_file.is_file():
+        return "new", None
+    wanted = _comparable(_resolved(cfg))
+    saved = _comparable(json.loads(saved_file.read_text()))
+    if wanted != saved:
+        changed = sorted(k for k in set(_flat(wanted)) | set(_flat(saved)) if _flat(wanted).get(k) != _flat(saved).get(k))
+        raise ValueError(
+            f"{run_dir} holds a run of another config (differs in {changed[:8]}); "
+            "remove it or set experiment.root elsewhere"
+        )
+    final = run_dir / "final_metrics.json"
+    if final.is_file():
+        return "done", json.loads(final.read_text())
+    if (run_dir / "checkpoints" / "last.pt").is_file() or (run_dir / "checkpoints" / "prev.pt").is_file():
+        return "resume", None
+    return "new", None
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}." if isinstance(v, dict) else f"{prefix}{k}"))
+    return out
 
 
 def _prepare(cfg: DictConfig) -> tuple[DictConfig, dict[str, Any] | None]:
@@ -257,6 +305,15 @@ def _full_run_frames() -> int:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train (or evaluate a controller) as ``cfg`` says; returns the final metrics."""
+    state, final = reuse_state(cfg)
+    if state == "done":
+        log.info("%s: finished already (experiment.reuse): %s", cfg.name, Path(cfg.run_dir) / "final_metrics.json")
+        return final  # type: ignore[return-value]
+    if state == "resume":
+        cfg = cfg.copy()
+        OmegaConf.set_struct(cfg, False)
+        cfg.resume = str(cfg.run_dir)
+        OmegaConf.set_struct(cfg, True)
     cfg, ckpt = _prepare(cfg)
     torch.set_num_threads(int(cfg.threads))
     tr = make_trainer_config(cfg.trainer)
@@ -265,7 +322,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     resolved = _resolved(cfg)
     dump_json(run_dir / "config.json", resolved)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    yaml_text = OmegaConf.to_yaml(OmegaConf.create(resolved))
+    atomic_write(run_dir / "config.yaml", lambda fh: fh.write(yaml_text.encode("utf-8")))
     meta = run_metadata(resolved)
     dump_json(run_dir / "meta.json", meta)
 
@@ -296,7 +354,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path) -> dict[str, Any]:
     """``heuristic`` / ``llm``: no learner; the controller flies the evaluation set."""
-    controller = make_controller(cfg, env_cfg)
+    controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
     t0 = time.perf_counter()
     try:
         agg = evaluator.run(controller, _eval_out(run_dir, 0), title=str(cfg.name))
@@ -308,6 +366,7 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
             close()
     metrics = {**_prefixed("eval", agg), **_prefixed("override", stats), "time/eval_s": time.perf_counter() - t0}
     logger.log_metrics(metrics, step=0)
+    logger.log_images(_trajectory_images(_eval_out(run_dir, 0)), step=0)
     final = {"frames": 0, **metrics}
     dump_json(run_dir / "final_metrics.json", final)
     write_summary(run_dir, {
@@ -331,8 +390,8 @@ def _train(
     has_advisor = cfg.advisor.kind != "none"
     policy = make_policy(cfg, behaviour_actor(learner), env_cfg)
     replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None
-    counters: dict[str, Any] = {"frames": 0, "batches": 0, "updates": 0, "utd_debt": 0.0, "next_eval": 0, "next_ckpt": 0,
-                                "update_s": 0.0, "overlap_s": 0.0}
+    counters: dict[str, Any] = {"frames": 0, "episodes": 0, "batches": 0, "updates": 0, "utd_debt": 0.0, "next_eval": 0,
+                                "next_ckpt": 0, "update_s": 0.0, "overlap_s": 0.0, "wall_s": 0.0}
     counters["next_eval"] = tr.eval_every_frames or tr.total_frames
     counters["next_ckpt"] = tr.checkpoint_every_frames or tr.total_frames
     updates = OffPolicyUpdates(learner, replay, tr, counters) if off_policy else None
@@ -374,27 +433,36 @@ def _train(
         return save_checkpoint(state, run_dir, keep=tr.keep_checkpoints)
 
     def evaluate(frames: int) -> dict[str, float]:
-        agg = evaluator.run(deterministic_actor(learner), _eval_out(run_dir, frames), title=f"{cfg.name} @ {frames} frames")
-        logger.log_metrics(_prefixed("eval", agg), step=frames)
+        out = _eval_out(run_dir, frames)
+        agg = evaluator.run(deterministic_actor(learner), out, title=f"{cfg.name} @ {frames} frames")
+        logger.log_metrics({**_prefixed("eval", agg), "eval/episodes_trained": counters["episodes"]}, step=frames)
+        logger.log_images(_trajectory_images(out), step=frames)
         return agg
 
+    def budget_spent() -> bool:
+        """The frame budget, or the episode budget (paper: 4000 episodes) when one is set."""
+        episodes_done = tr.total_episodes is not None and counters["episodes"] >= tr.total_episodes
+        return counters["frames"] >= tr.total_frames or episodes_done
+
     bar = tqdm(total=tr.total_frames, initial=counters["frames"], unit="frame", disable=not tr.progress_bar, dynamic_ncols=True)
-    t_start, frames_start = time.perf_counter(), counters["frames"]
+    t_start, frames_start, wall_start = time.perf_counter(), counters["frames"], float(counters["wall_s"])
     train_logs: dict[str, float] = {}
     timing = dict(collector.timing)
     t_iter = time.perf_counter()  # collection and updates count as training time; evaluation does not
     try:
-        for batch in collector:
+        for batch in () if budget_spent() else collector:
             t_batch = time.perf_counter()
             frames = collector.frames
             n_new = batch.numel()
             counters["frames"] = frames
             counters["batches"] += 1
+            counters["episodes"] += int(batch.get(("next", "done")).sum())
+            counters["wall_s"] = wall_start + (t_batch - t_start)  # training wall clock over every resumed part
             if off_policy:
                 noise = getattr(learner, "noise", None)
                 if noise is not None and hasattr(noise, "step"):
                     noise.step(n_new)  # DDPG: anneal the exploration noise by frames
-                if frames >= tr.total_frames:
+                if budget_spent():
                     updates.flush()  # the last step's gradient steps have no next step to run in
                 train_logs = updates.logs
             else:
@@ -418,16 +486,18 @@ def _train(
                     "time/update_s": t_update,
                     "time/update_overlap_s": t_overlap,
                     "train/updates": counters["updates"],
+                    "train/episodes": counters["episodes"],
                     "train/replay_size": len(replay) if replay is not None else 0,
                 }
                 logger.log_metrics(metrics, step=frames)
             counters["train_s"] = counters.get("train_s", 0.0) + (time.perf_counter() - t_iter)
-            if frames >= counters["next_eval"] or frames >= tr.total_frames:
+            finished = budget_spent()
+            if frames >= counters["next_eval"] or finished:
                 last_eval = evaluate(frames)
                 counters["last_eval_frames"] = frames
                 every = tr.eval_every_frames or tr.total_frames
                 counters["next_eval"] = (frames // every + 1) * every
-            if frames >= counters["next_ckpt"] or frames >= tr.total_frames:
+            if frames >= counters["next_ckpt"] or finished:
                 every = tr.checkpoint_every_frames or tr.total_frames
                 counters["next_ckpt"] = (frames // every + 1) * every
                 checkpoint()
@@ -436,6 +506,8 @@ def _train(
             post.update({k: f"{last_eval[k]:.3f}" for k in ("DCR", "CR", "SLR") if k in last_eval})
             bar.set_postfix(post, refresh=False)
             t_iter = time.perf_counter()
+            if finished:
+                break
     finally:
         bar.close()
         collector.shutdown()
@@ -445,7 +517,9 @@ def _train(
         counters["last_eval_frames"] = counters["frames"]
     final = {
         "frames": counters["frames"],
+        "episodes": counters["episodes"],
         "updates": counters["updates"],
+        "wall_s": round(float(counters["wall_s"]), 1),
         **_prefixed("eval", last_eval),
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in learner.actor.parameters())),
     }
@@ -469,6 +543,10 @@ def _train(
     })
     log.info("%s done at %d frames: %s", cfg.name, counters["frames"], {k: round(last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
     return final
+
+
+def _trajectory_images(eval_dir: Path) -> dict[str, Path]:
+    return {f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}": p for p in sorted(eval_dir.glob("trajectory_*.png"))}
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")

@@ -1,0 +1,765 @@
+"""``python -m experiments.report RUNS_DIR [--out DIR]``: the paper's tables and figures from
+the runs of the sweeps (conf/sweep/, experiments/README.md).
+
+It collects every run under ``RUNS_DIR``: training runs (``uavlae.train``: ``config.json``,
+``meta.json``, ``final_metrics.json``, ``logs/scalars/``) and evaluations (``uavlae.evaluate``:
+``evaluation.json``). A run without its final file is listed as unfinished, one whose files do
+not parse as broken; neither enters a table. Over the seeds of each (sweep, setting, method) it
+gives the mean and the 95% confidence interval of the mean (Student's t, n - 1 degrees of
+freedom; none for one seed), and writes to ``--out`` (default ``RUNS_DIR/report``):
+
+- ``runs.csv`` (every collected run: its metrics, commit and command), ``skipped.csv``;
+- one CSV and one Markdown table per figure, PNG and PDF figures (Fig. 3 training curves with
+  95% bands, Figs. 5-9 metric against count, Fig. 10 radar, Figs. 11-14 sensitivity);
+- ``learned.csv``: whether each method's DCR and SLR beat the uniform-random policy's with
+  non-overlapping 95% intervals;
+- ``report.md``: all of it with the sweep commands, the commits and the package versions.
+
+Nothing is cached: adding seeds or methods to ``RUNS_DIR`` and running this again re-aggregates
+everything from the run files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import shlex
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from uavlae.files import atomic_write, dump_json
+
+METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
+# Higher is better for these; lower for the others (the radar chart flips those).
+HIGHER_BETTER = ("DCR", "SLR")
+METHOD_ORDER = ("sac_llm", "sac_heuristic", "sac", "ppo", "ddpg", "cpo", "llm", "heuristic", "random")
+SCENARIO_SWEEPS = {  # sweep -> (count, figure)
+    "scenario_n_ou": ("N_OU", "fig5"),
+    "scenario_n_ge": ("N_GE", "fig6"),
+    "scenario_n_nfz": ("N_NFZ", "fig7"),
+    "scenario_n_bz": ("N_BZ", "fig8"),
+    "scenario_n_rz": ("N_RZ", "fig9"),
+}
+# The sensitivity axes (conf/sweep/sens_*.yaml): (name, dotted config key, figure).
+SENSITIVITY_AXES = (
+    ("actor_lr", "algo.actor_lr", "fig11"),
+    ("critic_lr", "algo.critic_lr", "fig11"),
+    ("batch_size", "trainer.batch_size", "fig11"),
+    ("r1", "env.reward.sigma.0", "fig12"),
+    ("r2", "env.reward.sigma.1", "fig12"),
+    ("r5", "env.reward.sigma.4", "fig12"),
+    ("r8", "env.reward.sigma.7", "fig12"),
+)
+# The one-key sweeps of the LLM figures: sweep -> (config key, figure, label).
+POINT_SWEEPS = {
+    "llm_dth": ("advisor.d_th", "fig13", "d_th (m)"),
+    "llm_prompt": ("llm.prompt_ablation", "fig14", "prompt"),
+}
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">", "h", "p")
+LINESTYLES = ("-", "--", "-.", ":")
+
+
+# ---------------------------------------------------------------------------- statistics
+
+
+def t_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile of Student's t with ``dof`` degrees of freedom (p > 0.5): bisection on
+    the CDF, which is 1/2 plus the density's integral from 0 (Simpson's rule)."""
+    if dof < 1 or not 0.5 < p < 1:
+        raise ValueError(f"t_quantile needs dof >= 1 and 0.5 < p < 1, got dof={dof}, p={p}")
+    c = math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2)) / math.sqrt(dof * math.pi)
+
+    def pdf(t: float) -> float:
+        return c * (1 + t * t / dof) ** (-(dof + 1) / 2)
+
+    def cdf(x: float, n: int = 4000) -> float:
+        h = x / n
+        s = pdf(0) + pdf(x) + sum((4 if i % 2 else 2) * pdf(i * h) for i in range(1, n))
+        return 0.5 + s * h / 3
+
+    lo, hi = 0.0, 1.0
+    while cdf(hi) < p:
+        lo, hi = hi, hi * 2
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if cdf(mid) < p else (lo, mid)
+    return (lo + hi) / 2
+
+
+_T975: dict[int, float] = {}
+
+
+def mean_ci(xs: list[float]) -> tuple[float, float, float, int]:
+    """``(mean, low, high, n)``: the 95% interval of the mean over ``xs`` (NaNs dropped); the
+    interval is NaN for fewer than two values."""
+    xs = [float(x) for x in xs if x is not None and not math.isnan(float(x))]
+    n = len(xs)
+    if n == 0:
+        return math.nan, math.nan, math.nan, 0
+    m = sum(xs) / n
+    if n < 2:
+        return m, math.nan, math.nan, 1
+    sd = math.sqrt(sum((x - m) ** 2 for x in xs) / (n - 1))
+    if n - 1 not in _T975:
+        _T975[n - 1] = t_quantile(0.975, n - 1)
+    half = _T975[n - 1] * sd / math.sqrt(n)
+    return m, m - half, m + half, n
+
+
+def fmt_ci(m: float, lo: float, hi: float, digits: int = 3) -> str:
+    if math.isnan(m):
+        return "n/a"
+    if math.isnan(lo):
+        return f"{m:.{digits}f}"
+    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+# ---------------------------------------------------------------------------- collection
+
+
+@dataclass
+class Run:
+    kind: str  # train | eval
+    path: Path
+    sweep: str
+    point: str
+    method: str
+    seed: int
+    metrics: dict[str, float]
+    config: dict[str, Any]
+    frames: int = 0
+    episodes: int = 0
+    updates: int = 0
+    commit: str = ""
+    dirty: bool | None = None
+    command: str = ""
+    packages: dict[str, Any] = field(default_factory=dict)
+    profile: str = ""
+    world: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def world_label(env: dict[str, Any]) -> str:
+    """SPEC's world, or which learning aids (SPEC §10) a run's env had on."""
+    reward = env.get("reward", {}) or {}
+    aids = []
+    if float(reward.get("progress_weight", 0) or 0) > 0:
+        aids.append(f"progress reward ({reward.get('progress_metric', 'euclidean')})")
+    if env.get("ego_features"):
+        aids.append("ego features")
+    return "SPEC world" if not aids else "learning-aid world: " + ", ".join(aids)
+
+
+def _select(d: dict[str, Any], dotted: str) -> Any:
+    cur: Any = d
+    for part in dotted.split("."):
+        if isinstance(cur, list):
+            try:
+                cur = cur[int(part)]
+            except (ValueError, IndexError):
+                return None
+        elif isinstance(cur, dict) and part in cur:
+            cur = cur[part]
+        else:
+            return None
+    return cur
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path.name}: {err}") from None
+
+
+def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
+    out = {}
+    for k, v in d.items():
+        if k.startswith(prefix) and isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k[len(prefix):]] = float(v)
+    missing = [m for m in METRICS if m not in out]
+    if missing:
+        raise ValueError(f"no {', '.join(missing)} in the final metrics")
+    return out
+
+
+def _train_run(d: Path) -> Run:
+    cfg = _read_json(d / "config.json")
+    meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+    final_file = d / "final_metrics.json"
+    if not final_file.is_file():
+        ckpt = d / "checkpoints" / "last.pt"
+        raise LookupError("unfinished: no final_metrics.json" + (" (a checkpoint to resume from)" if ckpt.is_file() else ""))
+    final = _read_json(final_file)
+    tr = cfg.get("trainer", {})
+    frames, episodes = int(final.get("frames", 0)), int(final.get("episodes", 0))
+    if cfg.get("controller", "learner") == "learner":
+        budget_frames = frames >= int(tr.get("total_frames", 0))
+        budget_episodes = tr.get("total_episodes") is not None and episodes >= int(tr["total_episodes"])
+        if not (budget_frames or budget_episodes):
+            raise LookupError(f"unfinished: {frames} of {tr.get('total_frames')} frames")
+    ex = cfg.get("experiment") or {}
+    return Run(
+        kind="train", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
+        method=str(ex.get("method") or cfg.get("name")), seed=int(cfg.get("seed", 0)),
+        metrics=_metrics_of(final, "eval/"), config=cfg, frames=frames, episodes=episodes,
+        updates=int(final.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
+        dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or shlex.join(meta.get("argv", []))),
+        packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
+        extra={"wall_s": final.get("wall_s"), "advisor_calls": _advisor_calls(d)},
+    )
+
+
+def _advisor_calls(run_dir: Path) -> int | None:
+    """The advisor's calls over the run: the sum of every logged window's ``override/**/calls``."""
+    files = sorted((run_dir / "logs" / "scalars" / "override").rglob("calls.csv"))
+    if not files:
+        return None
+    return int(sum(v for f in files for _, v in read_scalar(run_dir, str(f.relative_to(run_dir / "logs" / "scalars"))[:-4])))
+
+
+def _eval_run(d: Path) -> Run:
+    rec = _read_json(d / "evaluation.json")
+    try:
+        spec, ex, meta = rec["spec"], rec.get("experiment") or {}, rec.get("meta") or {}
+        metrics = _metrics_of(rec["metrics"])
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"evaluation.json lacks {err}") from None
+    return Run(
+        kind="eval", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
+        method=str(spec.get("method") or rec.get("name")), seed=int(spec.get("seed", 0)), metrics=metrics,
+        config={"env": rec.get("env", {})}, frames=int(spec.get("frames", 0)), episodes=int(rec.get("episodes_trained", 0)),
+        updates=int(rec.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
+        dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or ""), packages=meta.get("packages") or {},
+        profile=str(ex.get("profile") or ""), world=world_label(rec.get("env", {})),
+        extra={"n_scenarios": rec.get("n_scenarios"), "wall_s": rec.get("wall_s")},
+    )
+
+
+def collect(root: Path) -> tuple[list[Run], list[tuple[str, str]]]:
+    """Every finished run under ``root``, and ``(path, reason)`` for each one skipped."""
+    runs: list[Run] = []
+    skipped: list[tuple[str, str]] = []
+    seen: set[Path] = set()
+    for marker, reader in (("evaluation.json", _eval_run), ("config.json", _train_run)):
+        for f in sorted(root.rglob(marker)):
+            d = f.parent
+            rel = d.relative_to(root)
+            if any(p.startswith(".") for p in rel.parts) or "report" in rel.parts[:1] or d in seen:
+                continue  # Hydra's multirun folders, this report's own folder
+            if marker == "config.json" and not (d / "meta.json").is_file():
+                continue  # not a uavlae.train run
+            seen.add(d)
+            try:
+                runs.append(reader(d))
+            except LookupError as err:
+                skipped.append((str(rel), str(err.args[0])))
+            except ValueError as err:
+                skipped.append((str(rel), f"broken: {err}"))
+    return runs, skipped
+
+
+# ---------------------------------------------------------------------------- aggregation
+
+
+def method_key(m: str) -> tuple[int, str]:
+    base = m.split("_fp")[0] if m.startswith("sac_llm_fp") else m
+    order = METHOD_ORDER.index(base) if base in METHOD_ORDER else len(METHOD_ORDER)
+    return (order + (0.5 if m != base else 0), m)  # type: ignore[return-value]
+
+
+def group(runs: list[Run]) -> dict[tuple[str, str, str], list[Run]]:
+    out: dict[tuple[str, str, str], list[Run]] = defaultdict(list)
+    for r in runs:
+        out[(r.sweep, r.point, r.method)].append(r)
+    return out
+
+
+def aggregate_rows(runs: list[Run], keys: dict[str, Any] | None = None) -> dict[str, Any]:
+    row: dict[str, Any] = dict(keys or {})
+    row["n_seeds"] = len(runs)
+    row["seeds"] = " ".join(str(r.seed) for r in sorted(runs, key=lambda r: r.seed))
+    for m in METRICS:
+        mean, lo, hi, _ = mean_ci([r.metrics.get(m, math.nan) for r in runs])
+        row[m], row[f"{m}_lo"], row[f"{m}_hi"] = mean, lo, hi
+    row["frames"] = " ".join(sorted({str(r.frames) for r in runs}))
+    row["episodes"] = " ".join(sorted({str(r.episodes) for r in runs}))
+    row["commits"] = " ".join(sorted({r.commit + ("+dirty" if r.dirty else "") for r in runs}))
+    walls = [float(r.extra["wall_s"]) for r in runs if r.extra.get("wall_s") is not None]
+    row["wall_s"] = round(sum(walls) / len(walls), 1) if walls else ""
+    calls = [str(r.extra["advisor_calls"]) for r in runs if r.extra.get("advisor_calls") is not None]
+    row["advisor_calls"] = " ".join(calls)
+    return row
+
+
+def _write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    keys = list(dict.fromkeys(k for r in rows for k in r)) or ["empty"]
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    _write_text(path, buf.getvalue())
+
+
+def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
+    calls = any(r.get("advisor_calls") for r in rows)
+    head = first + list(METRICS) + ["seeds", "frames", "episodes", "wall s (mean)"] + (["advisor calls"] if calls else []) + ["commits"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [str(r[k]) for k in first] + [fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) for m in METRICS]
+        cells += [f"{r['n_seeds']} ({r['seeds']})", r["frames"], r["episodes"], str(r.get("wall_s", ""))]
+        cells += ([r.get("advisor_calls", "")] if calls else []) + [r["commits"]]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def learned_rows(train_rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """A method has learned when its DCR and SLR intervals lie above the random policy's."""
+    rand = next((r for r in train_rows if r["method"] == "random"), None)
+    out = []
+    for r in train_rows:
+        if r["method"] in ("random", "heuristic", "llm"):
+            continue
+        row = {"method": r["method"], "n_seeds": r["n_seeds"]}
+        verdicts = []
+        for m in ("DCR", "SLR"):
+            row[m] = fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"])
+            row[f"random_{m}"] = fmt_ci(rand[m], rand[f"{m}_lo"], rand[f"{m}_hi"]) if rand else "n/a"
+            if rand is None or math.isnan(r[f"{m}_lo"]) or math.isnan(rand[f"{m}_lo"]):
+                verdicts.append(None)
+            else:
+                verdicts.append(r[f"{m}_lo"] > rand[f"{m}_hi"])
+        if None in verdicts:
+            row["learned"] = "undetermined (needs 2+ seeds of it and of random)"
+        else:
+            row["learned"] = "yes" if all(verdicts) else "no"
+        out.append(row)
+    return out
+
+
+# ---------------------------------------------------------------------------- curves
+
+
+def read_scalar(run_dir: Path, name: str) -> list[tuple[float, float]]:
+    f = run_dir / "logs" / "scalars" / f"{name}.csv"
+    if not f.is_file():
+        return []
+    out = []
+    for line in f.read_text().splitlines():
+        parts = line.split(",")
+        if len(parts) >= 2:
+            try:
+                out.append((float(parts[0]), float(parts[1])))
+            except ValueError:
+                continue
+    return out
+
+
+def training_curve(run: Run, x: str) -> list[tuple[float, float]]:
+    """The run's training episode return against frames (``x="frames"``) or against the
+    training episodes ended so far (``x="episodes"``, from ``train/episodes`` at each step)."""
+    ret = read_scalar(run.path, "episode/mean_return")
+    if x == "frames":
+        return ret
+    eps = dict(read_scalar(run.path, "train/episodes"))
+    return [(eps[s], v) for s, v in ret if s in eps]
+
+
+def band(curves: list[list[tuple[float, float]]], n_points: int = 60) -> tuple[list[float], list[float], list[float], list[float]]:
+    """Mean and 95% band over curves, each interpolated onto a common grid up to the shortest's end."""
+    curves = [c for c in curves if len(c) >= 2]
+    if not curves:
+        return [], [], [], []
+    end = min(c[-1][0] for c in curves)
+    start = max(c[0][0] for c in curves)
+    if end <= start:
+        return [], [], [], []
+    grid = [start + (end - start) * i / (n_points - 1) for i in range(n_points)]
+    xs, ms, los, his = [], [], [], []
+    for g in grid:
+        vals = [_interp(c, g) for c in curves]
+        m, lo, hi, _ = mean_ci(vals)
+        xs.append(g)
+        ms.append(m)
+        los.append(m if math.isnan(lo) else lo)
+        his.append(m if math.isnan(hi) else hi)
+    return xs, ms, los, his
+
+
+def _interp(c: list[tuple[float, float]], x: float) -> float:
+    for (x0, y0), (x1, y1) in zip(c, c[1:]):
+        if x0 <= x <= x1:
+            return y0 if x1 == x0 else y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+    return c[-1][1] if x >= c[-1][0] else c[0][1]
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+class Style:
+    """One colour, marker and line style per method, fixed across figures (in greyscale the
+    markers and dashes tell methods apart)."""
+
+    def __init__(self, methods: list[str]):
+        import matplotlib
+
+        cmap = matplotlib.colormaps["tab10"]
+        self.of = {m: (cmap(i % 10), MARKERS[i % len(MARKERS)], LINESTYLES[i % len(LINESTYLES)])
+                   for i, m in enumerate(sorted(set(methods), key=method_key))}
+
+    def kw(self, m: str) -> dict[str, Any]:
+        c, mk, ls = self.of[m]
+        return {"color": c, "marker": mk, "linestyle": ls, "markersize": 5, "label": m}
+
+
+def _save(fig: Any, out: Path, stem: str, note: str) -> list[str]:
+    if note:
+        fig.text(0.01, -0.02, note, fontsize=7, ha="left", va="top", style="italic")  # below the axes' labels
+    files = []
+    for ext in ("png", "pdf"):
+        f = out / f"{stem}.{ext}"
+        fig.savefig(f, dpi=150, bbox_inches="tight")
+        files.append(f.name)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return files
+
+
+def fig_training(runs: list[Run], style: Style, out: Path, note: str) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    by_method: dict[str, list[Run]] = defaultdict(list)
+    for r in runs:
+        by_method[r.method].append(r)
+    files = []
+    for x in ("episodes", "frames"):
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        drawn = 0
+        for m in sorted(by_method, key=method_key):
+            xs, ms, los, his = band([training_curve(r, x) for r in by_method[m]])
+            if not xs:
+                continue
+            kw = style.kw(m)
+            ax.plot(xs, ms, markevery=max(1, len(xs) // 8), **kw)
+            ax.fill_between(xs, los, his, color=kw["color"], alpha=0.2, linewidth=0)
+            drawn += 1
+        if not drawn:
+            plt.close(fig)
+            continue
+        ax.set_xlabel("training episodes" if x == "episodes" else "environment frames")
+        ax.set_ylabel("episode return (training)")
+        ax.set_title("Fig. 3: training curves (mean, 95% band over seeds)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+        files += _save(fig, out, f"fig3_training_curves_{x}", note)
+    return files
+
+
+def fig_lines(rows: list[dict[str, Any]], xkey: str, xlabel: str, title: str, style: Style, out: Path, stem: str,
+              note: str, logx: bool = False, categorical: bool = False) -> list[str]:
+    """Five panels (DCR, CR, SLR, RVR, ECR) against ``xkey``, one line per method, 95% bars."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(3.0 * len(METRICS), 3.2))
+    cats = list(dict.fromkeys(r[xkey] for r in rows)) if categorical else []
+    methods = sorted({r["method"] for r in rows}, key=method_key)
+    for ax, metric in zip(axes, METRICS):
+        for j, m in enumerate(methods):
+            rs = [r for r in rows if r["method"] == m]
+            if not categorical:
+                rs.sort(key=lambda r: float(r[xkey]))
+            xs = [cats.index(r[xkey]) + 0.08 * (j - len(methods) / 2) if categorical else float(r[xkey]) for r in rs]
+            ys = [r[metric] for r in rs]
+            err = [[0 if math.isnan(r[f"{metric}_lo"]) else r[metric] - r[f"{metric}_lo"] for r in rs],
+                   [0 if math.isnan(r[f"{metric}_hi"]) else r[f"{metric}_hi"] - r[metric] for r in rs]]
+            kw = style.kw(m)
+            if categorical:
+                kw["linestyle"] = "none"
+            ax.errorbar(xs, ys, yerr=err, capsize=2, **kw)
+        if categorical:
+            ax.set_xticks(range(len(cats)), [str(c) for c in cats], rotation=30, fontsize=7)
+        if logx:
+            ax.set_xscale("log")
+        ax.set_title(metric)
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=6)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out, stem, note)
+
+
+def fig_radar(rows: list[dict[str, Any]], style: Style, out: Path, note: str) -> list[str]:
+    """Fig. 10: the mean over every setting per method; CR, RVR and ECR drawn as 1 - value so
+    that outward is better on every axis."""
+    import matplotlib.pyplot as plt
+
+    axes_names = [m if m in HIGHER_BETTER else f"1-{m}" for m in METRICS]
+    angles = [2 * math.pi * i / len(METRICS) for i in range(len(METRICS))]
+    fig = plt.figure(figsize=(5, 5))
+    ax = fig.add_subplot(polar=True)
+    for r in sorted(rows, key=lambda r: method_key(r["method"])):
+        vals = [r[m] if m in HIGHER_BETTER else 1 - r[m] for m in METRICS]
+        if any(math.isnan(v) for v in vals):
+            continue
+        ax.plot(angles + angles[:1], vals + vals[:1], **style.kw(r["method"]))
+    ax.set_xticks(angles, axes_names)
+    ax.set_ylim(0, 1)
+    ax.set_title("Fig. 10: mean over all settings (outward is better)", fontsize=10)
+    ax.legend(fontsize=6, loc="upper right", bbox_to_anchor=(1.35, 1.1))
+    return _save(fig, out, "fig10_summary_radar", note)
+
+
+# ---------------------------------------------------------------------------- the report
+
+
+def sweep_commands(root: Path) -> list[str]:
+    """The multirun commands that wrote ``root`` (from Hydra's ``multirun.yaml`` of each)."""
+    out = []
+    for f in sorted(root.glob(".multirun/*/*/multirun.yaml"), key=lambda f: f.parent.name):  # in the order they ran
+        try:
+            hc = yaml.safe_load(f.read_text())["hydra"]
+            out.append(shlex.join(["python", "-m", f"uavlae.{hc['job']['name']}", "-m", *hc["overrides"]["task"]]))
+        except (OSError, KeyError, TypeError, yaml.YAMLError):
+            continue
+    return list(dict.fromkeys(out))
+
+
+def build(root: Path, out: Path) -> dict[str, Any]:
+    """Collect, aggregate and write everything; returns what it wrote (the tests read it)."""
+    runs, skipped = collect(root)
+    out.mkdir(parents=True, exist_ok=True)
+    style = Style([r.method for r in runs] or ["none"])
+    worlds = sorted({r.world for r in runs})
+    note = "; ".join(worlds) if worlds else ""
+    if any(w != "SPEC world" for w in worlds):
+        note = "NOTE " + note + " (beyond the paper, SPEC §10)"
+    profiles = sorted({r.profile for r in runs if r.profile})
+    result: dict[str, Any] = {"runs": len(runs), "skipped": skipped, "tables": {}, "figures": []}
+
+    _write_csv(out / "runs.csv", [
+        {"kind": r.kind, "sweep": r.sweep, "point": r.point, "method": r.method, "seed": r.seed,
+         **{m: r.metrics.get(m) for m in METRICS}, "frames": r.frames, "episodes": r.episodes, "updates": r.updates,
+         "wall_s": r.extra.get("wall_s"), "advisor_calls": r.extra.get("advisor_calls"),
+         "world": r.world, "commit": r.commit, "dirty": r.dirty, "path": str(r.path.relative_to(root)), "command": r.command}
+        for r in sorted(runs, key=lambda r: (r.sweep, r.point, method_key(r.method), r.seed))
+    ])
+    _write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped])
+    groups = group(runs)
+    md: list[str] = []
+
+    def table(name: str, rows: list[dict[str, Any]], first: list[str], heading: str, text: str = "") -> None:
+        _write_csv(out / f"{name}.csv", rows)
+        result["tables"][name] = rows
+        lines = [f"## {heading}", ""] + ([text, ""] if text else []) + _md_table(rows, first) + [""]
+        _write_text(out / f"{name}.md", "\n".join(lines))
+        md.extend(lines)
+
+    # Fig. 3 and the final evaluation on the default distribution
+    train = [r for r in runs if r.sweep == "train" and r.kind == "train"]
+    train_rows = [aggregate_rows(groups[k], {"method": k[2]}) for k in sorted(
+        {k for k in groups if k[0] == "train"}, key=lambda k: method_key(k[2]))]
+    if train_rows:
+        table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
+              "Mean [95% CI] over seeds of the deterministic actor on the shared evaluation set.")
+        learned = learned_rows(train_rows)
+        _write_csv(out / "learned.csv", learned)
+        result["tables"]["learned"] = learned
+        md += ["## Learned? (DCR and SLR above the uniform-random policy's, non-overlapping 95% intervals)", "",
+               "| method | DCR | random DCR | SLR | random SLR | learned |", "|---|---|---|---|---|---|"]
+        md += [f"| {r['method']} | {r['DCR']} | {r['random_DCR']} | {r['SLR']} | {r['random_SLR']} | {r['learned']} |" for r in learned]
+        md.append("")
+        figs = fig_training([r for r in train if r.config.get("controller", "learner") == "learner"], style, out, note)
+        result["figures"] += figs
+        md += [f"![{f}]({f})" for f in figs if f.endswith(".png")] + [""]
+
+    # Figs. 5-9 and Fig. 10
+    summary_seeds: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    per_seed: dict[tuple[str, int, str], list[float]] = defaultdict(list)
+    for sweep, (count, fig) in SCENARIO_SWEEPS.items():
+        keys = [k for k in groups if k[0] == sweep]
+        if not keys:
+            continue
+        rows = []
+        for k in sorted(keys, key=lambda k: (int(k[1].split("=")[-1]), method_key(k[2]))):
+            rows.append(aggregate_rows(groups[k], {count: int(k[1].split("=")[-1]), "method": k[2]}))
+            for r in groups[k]:
+                for m in METRICS:
+                    per_seed[(r.method, r.seed, m)].append(r.metrics[m])
+        table(f"{fig}_{sweep}", rows, [count, "method"], f"{fig.replace('fig', 'Fig. ')}: metrics against {count}")
+        result["figures"] += fig_lines(rows, count, count, f"{fig.replace('fig', 'Fig. ')}: metrics against {count} "
+                                       "(mean, 95% CI over seeds)", style, out, f"{fig}_{sweep}", note)
+        md += [f"![{fig}]({fig}_{sweep}.png)", ""]
+    if per_seed:
+        rows = []
+        for method in sorted({k[0] for k in per_seed}, key=method_key):
+            row: dict[str, Any] = {"method": method}
+            seeds = sorted({k[1] for k in per_seed if k[0] == method})
+            for m in METRICS:
+                vals = [sum(per_seed[(method, s, m)]) / len(per_seed[(method, s, m)]) for s in seeds]
+                row[m], row[f"{m}_lo"], row[f"{m}_hi"], _ = mean_ci(vals)
+            row.update({"n_seeds": len(seeds), "seeds": " ".join(map(str, seeds)), "frames": "", "episodes": "",
+                        "commits": " ".join(sorted({r.commit + ("+dirty" if r.dirty else "") for r in runs
+                                                    if r.method == method and r.kind == "eval"}))})
+            rows.append(row)
+        table("fig10_summary", rows, ["method"], "Fig. 10: mean over all scenario settings",
+              "Each seed's mean over every setting of Figs. 5-9, then mean [95% CI] over seeds.")
+        result["figures"] += fig_radar(rows, style, out, note)
+        md += ["![fig10](fig10_summary_radar.png)", ""]
+
+    # Figs. 11-12: one factor at a time around the defaults
+    sens = [r for r in runs if r.sweep == "sensitivity"]
+    if sens:
+        defaults = {name: _select(_default_config(sens), key) for name, key, _ in SENSITIVITY_AXES}
+        for fig in ("fig11", "fig12"):
+            axes = [(n, k) for n, k, f in SENSITIVITY_AXES if f == fig]
+            for name, key in axes:
+                others = [(k2, defaults[n2]) for n2, k2, _ in SENSITIVITY_AXES if n2 != name]
+                on_axis = [r for r in sens if all(_select(r.config, k2) == v for k2, v in others)]
+                if len({_select(r.config, key) for r in on_axis}) < 2:
+                    continue
+                by: dict[tuple[Any, str], list[Run]] = defaultdict(list)
+                for r in on_axis:
+                    by[(_select(r.config, key), r.method)].append(r)
+                rows = [aggregate_rows(v, {name: x, "method": m}) for (x, m), v in
+                        sorted(by.items(), key=lambda kv: (float(kv[0][0]), method_key(kv[0][1])))]
+                table(f"{fig}_sensitivity_{name}", rows, [name, "method"], f"{fig.replace('fig', 'Fig. ')}: sensitivity to {name}")
+                result["figures"] += fig_lines(rows, name, name, f"{fig.replace('fig', 'Fig. ')}: sensitivity to {name}",
+                                               style, out, f"{fig}_sensitivity_{name}", note,
+                                               logx=name.endswith("lr") or name == "batch_size")
+                md += [f"![{name}]({fig}_sensitivity_{name}.png)", ""]
+
+    # Figs. 13-14
+    for sweep, (key, fig, label) in POINT_SWEEPS.items():
+        rs = [r for r in runs if r.sweep == sweep]
+        if not rs:
+            continue
+        by = defaultdict(list)
+        for r in rs:
+            by[(_select(r.config, key), r.method)].append(r)
+        categorical = any(isinstance(x, str) for x, _ in by)
+        rows = [aggregate_rows(v, {label: x, "method": m}) for (x, m), v in
+                sorted(by.items(), key=lambda kv: (str(kv[0][0]) if categorical else float(kv[0][0]), kv[0][1]))]
+        table(f"{fig}_{sweep}", rows, [label, "method"], f"{fig.replace('fig', 'Fig. ')}: {label}")
+        result["figures"] += fig_lines(rows, label, label, f"{fig.replace('fig', 'Fig. ')}: {label}", style, out,
+                                       f"{fig}_{sweep}", note, categorical=categorical)
+        md += [f"![{fig}]({fig}_{sweep}.png)", ""]
+
+    # the long run(s): one method, one seed, its curve and final evaluation
+    long_runs = [r for r in runs if r.sweep == "long"]
+    for r in long_runs:
+        rows = [aggregate_rows([r], {"method": r.method})]
+        table(f"long_{r.method}", rows, ["method"], f"Long run: {r.method}, {r.world}, {r.frames} frames, {r.episodes} episodes")
+        figs = _fig_long(r, style, out, note)
+        result["figures"] += figs
+        md += [f"![long]({f})" for f in figs if f.endswith(".png")] + [""]
+
+    header = [
+        "# Experiments report",
+        "",
+        f"Runs directory: `{root}`  ",
+        f"Written: {time.strftime('%Y-%m-%d %H:%M:%S %Z')} by `python -m experiments.report {shlex.quote(str(root))}`  ",
+        f"Profile(s): {', '.join(profiles) or 'none'}  ",
+        f"World(s): {'; '.join(worlds) or 'none'}  ",
+        f"Runs: {len(runs)} collected, {len(skipped)} skipped (below)  ",
+        f"Commits: {', '.join(sorted({r.commit + ('+dirty' if r.dirty else '') for r in runs})) or 'none'}",
+        "",
+        "Intervals: 95% confidence intervals of the mean over seeds (Student's t); a single seed has none. "
+        "DCR and SLR: higher is better; CR, RVR and ECR: lower is better.",
+        "",
+    ]
+    versions = defaultdict(set)
+    for r in runs:
+        for k, v in (r.packages or {}).items():
+            versions[k].add(str(v))
+    footer = ["## Package versions", "", "| package | version(s) |", "|---|---|"]
+    footer += [f"| {k} | {', '.join(sorted(v))} |" for k, v in sorted(versions.items())]
+    footer += ["", "## Commands", "", "The sweeps (from Hydra's multirun records under the runs directory):", ""]
+    footer += [f"- `{c}`" for c in sweep_commands(root)] or ["- none recorded"]
+    footer += ["", "Each run's own command (it reruns that run alone) is in `runs.csv`.", "",
+               "## Skipped runs", ""]
+    footer += [f"- `{p}`: {why}" for p, why in skipped] or ["none"]
+    footer.append("")
+    _write_text(out / "report.md", "\n".join(header + md + footer))
+    dump_json(out / "report.json", {k: v for k, v in result.items() if k != "tables"} | {"tables": result["tables"]})
+    return result
+
+
+def _default_config(sens: list[Run]) -> dict[str, Any]:
+    """The sensitivity sweeps' default setting: per axis, the value most of its runs share."""
+    cfg: dict[str, Any] = {}
+    for name, key, _ in SENSITIVITY_AXES:
+        vals = [json.dumps(_select(r.config, key)) for r in sens]
+        best = max(set(vals), key=vals.count)
+        node = cfg
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = json.loads(best)
+    # list indices: store the sigma entries as a list long enough for their indices
+    sig = cfg.get("env", {}).get("reward", {}).get("sigma")
+    if isinstance(sig, dict):
+        arr = [None] * (max(int(k) for k in sig) + 1)
+        for k, v in sig.items():
+            arr[int(k)] = v
+        cfg["env"]["reward"]["sigma"] = arr
+    return cfg
+
+
+def _fig_long(r: Run, style: Style, out: Path, note: str) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5))
+    c = training_curve(r, "frames")
+    if c:
+        a.plot([x for x, _ in c], [y for _, y in c], **{**style.kw(r.method), "marker": None})
+    a.set_xlabel("environment frames")
+    a.set_ylabel("episode return (training)")
+    a.grid(alpha=0.3)
+    for m in METRICS:
+        e = read_scalar(r.path, f"eval/{m}")
+        if e:
+            b.plot([x for x, _ in e], [y for _, y in e], label=m, marker=MARKERS[METRICS.index(m)],
+                   linestyle=LINESTYLES[METRICS.index(m) % len(LINESTYLES)])
+    b.set_xlabel("environment frames")
+    b.set_ylabel("evaluation metric")
+    b.legend(fontsize=7)
+    b.grid(alpha=0.3)
+    fig.suptitle(f"Long run: {r.method} ({r.world}), seed {r.seed}", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out, f"long_{r.method}", note)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs_dir", type=Path, help="a sweeps' experiment.root (e.g. runs/quick)")
+    p.add_argument("--out", type=Path, default=None, help="where to write (default RUNS_DIR/report)")
+    a = p.parse_args(argv)
+    if not a.runs_dir.is_dir():
+        p.error(f"{a.runs_dir} is not a directory")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    res = build(a.runs_dir.resolve(), (a.out or a.runs_dir / "report").resolve())
+    print(f"{res['runs']} runs, {len(res['skipped'])} skipped, {len(res['figures'])} figure files -> "
+          f"{(a.out or a.runs_dir / 'report') / 'report.md'}")
+    for path, why in res["skipped"]:
+        print(f"  skipped {path}: {why}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

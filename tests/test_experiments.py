@@ -1,0 +1,421 @@
+"""The experiments' machinery: every sweep composes, the report aggregates synthetic runs with
+known numbers (means, intervals, missing and broken runs), sweeps reuse and resume their runs,
+uavlae.evaluate honours env overrides, and two-job multiruns run on joblib and on a local Ray
+instance end to end (train sweep -> scenario sweep -> report)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from experiments import report
+from uavlae.factories import CONF_DIR, REPO_ROOT, validate_config
+
+pytestmark = pytest.mark.timeout(600)
+
+SWEEPS = sorted(p.stem for p in (CONF_DIR / "sweep").glob("*.yaml") if not p.stem.startswith("_"))
+TINY = [
+    "trainer.total_frames=128", "trainer.env_batch_size=4", "trainer.frames_per_batch=32",
+    "trainer.init_random_frames=32", "trainer.batch_size=16", "trainer.utd_ratio=0.25",
+    "trainer.replay_capacity=512", "trainer.eval_episodes=2", "trainer.eval_max_steps=10",
+    "trainer.eval_every_frames=64", "trainer.checkpoint_every_frames=64", "trainer.eval_plots=1",
+    "trainer.progress_bar=false", "logger.wandb.mode=disabled", "trainer.compile_env=false",
+]
+
+
+def _cfg(*overrides: str, hydra: bool = False):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=hydra)
+
+
+# ---------------------------------------------------------------------------- composition
+
+
+def test_the_paper_sweeps_exist():
+    assert set(SWEEPS) >= {
+        "train", "train_llm", "train_fp", "scenario_n_ou", "scenario_n_ge", "scenario_n_nfz", "scenario_n_bz",
+        "scenario_n_rz", "sens_actor_lr", "sens_critic_lr", "sens_batch_size", "sens_r1", "sens_r2", "sens_r5",
+        "sens_r8", "llm_dth", "llm_prompt",
+    }
+
+
+@pytest.mark.parametrize("profile", [None, "quick", "paper"])
+@pytest.mark.parametrize("sweep", SWEEPS)
+def test_every_sweep_composes_at_its_first_and_last_point(sweep, profile):
+    extra = [f"+profile={profile}"] if profile else []
+    base = _cfg(f"+sweep={sweep}", *extra, hydra=True)
+    params = {k: str(v).split(",") for k, v in base.hydra.sweeper.params.items()}
+    assert "+exp" in params and "seed" in params, params
+    if profile == "quick":
+        assert params["seed"] == ["0", "1", "2"]
+    if profile == "paper":
+        assert len(params["seed"]) >= 5 and base.trainer.total_episodes == 4000 and base.trainer.eval_episodes >= 100
+    for pick in (0, -1):
+        point = [f"{k}={v[pick]}" for k, v in params.items()]
+        cfg = _cfg(f"+sweep={sweep}", *extra, *point)
+        resolved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+        OmegaConf.set_struct(resolved, True)
+        validate_config(resolved)
+        assert resolved.experiment.sweep and resolved.experiment.reuse
+        root = resolved.experiment.root
+        where = resolved.experiment.eval_dir if sweep.startswith("scenario_") else resolved.run_dir
+        assert where.startswith(f"{root}/{resolved.experiment.sweep}/") and where.endswith(f"/seed{resolved.seed}")
+
+
+def test_scenario_sweep_fixes_the_count_and_the_checkpoint():
+    cfg = _cfg("+sweep=scenario_n_ge", "+exp=ppo", "seed=2", "env.ge.count.max=12")
+    assert (cfg.env.ge.count.min, cfg.env.ge.count.max) == (12, 12)
+    assert cfg.checkpoint == "runs/experiments/train/ppo/seed2"
+    assert cfg.experiment.eval_dir == "runs/experiments/scenario_n_ge/n_ge=12/ppo/seed2"
+    assert cfg.trainer.eval_set == "runs/experiments/eval_sets/n_ge_12.json"
+
+
+def test_sensitivity_runs_share_the_default_point():
+    a = _cfg("+sweep=sens_actor_lr", "+exp=sac", "algo.actor_lr=1.0e-4")
+    b = _cfg("+sweep=sens_r8", "+exp=sac", "env.reward.sigma.7=1.0")
+    c = _cfg("+sweep=sens_r8", "+exp=sac", "env.reward.sigma.7=2.0")
+    assert a.run_dir == b.run_dir != c.run_dir
+    assert c.env.reward.sigma[7] == 2.0 and c.run_dir.endswith("_w8.0_0.4_0.6_2.0/sac/seed0")
+    # the profile comes after the sweep on the command line and sets its seeds and budget
+    q = _cfg("+sweep=sens_r1", "+profile=quick_sensitivity", hydra=True)
+    assert q.hydra.sweeper.params.seed == "0,1" and q.trainer.total_frames == 120000
+    assert q.experiment.profile == "quick" and q.env.reward.progress_weight > 0
+
+
+@pytest.mark.parametrize("launcher, target", [
+    ("local", "JoblibLauncher"), ("ray_local", "RayLauncher"), ("slurm", "SlurmLauncher"),
+])
+def test_launchers_compose(launcher, target):
+    cfg = _cfg("+sweep=train", f"hydra/launcher={launcher}", hydra=True)
+    assert cfg.hydra.launcher._target_.endswith(target)
+    if launcher == "slurm":
+        assert cfg.hydra.launcher.cpus_per_task == 1 and cfg.hydra.launcher.gpus_per_node == 0
+
+
+def test_sweeps_default_to_joblib_with_two_jobs():
+    cfg = _cfg("+sweep=train", hydra=True)
+    assert cfg.hydra.launcher._target_.endswith("JoblibLauncher") and cfg.hydra.launcher.n_jobs == 2
+
+
+# ---------------------------------------------------------------------------- statistics
+
+
+def test_t_quantiles_and_intervals_by_hand():
+    # Student's t table: t_{0.975} for 1, 2, 4 and 29 degrees of freedom
+    assert report.t_quantile(0.975, 1) == pytest.approx(12.7062, abs=2e-3)
+    assert report.t_quantile(0.975, 2) == pytest.approx(4.3027, abs=1e-3)
+    assert report.t_quantile(0.975, 4) == pytest.approx(2.7764, abs=1e-3)
+    assert report.t_quantile(0.975, 29) == pytest.approx(2.0452, abs=1e-3)
+    m, lo, hi, n = report.mean_ci([0.5, 0.7, 0.9])  # sd 0.2, half width 4.3027 * 0.2 / sqrt(3)
+    assert (m, n) == (pytest.approx(0.7), 3)
+    assert (lo, hi) == (pytest.approx(0.7 - 0.49683, abs=1e-4), pytest.approx(0.7 + 0.49683, abs=1e-4))
+    m, lo, hi, n = report.mean_ci([0.25, float("nan")])
+    assert m == 0.25 and n == 1 and math.isnan(lo) and math.isnan(hi)
+    assert report.fmt_ci(0.7, 0.2, 1.2) == "0.700 [0.200, 1.200]" and report.fmt_ci(0.25, math.nan, math.nan) == "0.250"
+
+
+# ---------------------------------------------------------------------------- the report
+
+
+def _metrics(dcr: float, slr: float, cr: float = 0.1, rvr: float = 0.0, ecr: float = 0.2) -> dict[str, float]:
+    return {"DCR": dcr, "CR": cr, "SLR": slr, "RVR": rvr, "ECR": ecr}
+
+
+def _train_dir(root: Path, method: str, seed: int, m: dict[str, float], *, sweep: str = "train", point: str = "default",
+               controller: str = "learner", frames: int = 1000, total: int = 1000, final: bool = True,
+               extra_cfg: dict | None = None, returns: list[tuple[int, int, float]] | None = None) -> Path:
+    d = root / "train" / method / f"seed{seed}" if sweep == "train" else root / sweep / point / method / f"seed{seed}"
+    d.mkdir(parents=True, exist_ok=True)
+    cfg = {"name": method, "seed": seed, "controller": controller, "trainer": {"total_frames": total, "total_episodes": None},
+           "experiment": {"sweep": sweep, "point": point, "method": method, "profile": "quick"},
+           "env": {"reward": {"progress_weight": 8.0, "progress_metric": "geodesic", "sigma": [8.0, 0.4, 0.4, 0.4, 0.6, 0.4, 0.6, 1.0, 0.01]},
+                   "ego_features": True},
+           "algo": {"actor_lr": 1e-4, "critic_lr": 3e-4}}
+    cfg["trainer"]["batch_size"] = 256
+    for k, v in (extra_cfg or {}).items():
+        node = cfg
+        *parts, last = k.split(".")
+        for p in parts:
+            node = node[p] if not isinstance(node, list) else node[int(p)]
+        if isinstance(node, list):
+            node[int(last)] = v
+        else:
+            node[last] = v
+    (d / "config.json").write_text(json.dumps(cfg))
+    (d / "meta.json").write_text(json.dumps({"git": {"commit": "abcdef1234567", "dirty": False},
+                                              "packages": {"torch": "2.13.0+cpu"}, "command": f"python -m uavlae.train +exp={method} seed={seed}"}))
+    if final:
+        (d / "final_metrics.json").write_text(json.dumps({"frames": frames, "episodes": frames // 100, "updates": 5,
+                                                          **{f"eval/{k}": v for k, v in m.items()}}))
+    if returns:
+        (d / "logs" / "scalars" / "episode").mkdir(parents=True)
+        (d / "logs" / "scalars" / "train").mkdir(parents=True)
+        (d / "logs" / "scalars" / "episode" / "mean_return.csv").write_text("".join(f"{f},{r}\n" for f, _, r in returns))
+        (d / "logs" / "scalars" / "train" / "episodes.csv").write_text("".join(f"{f},{e}\n" for f, e, _ in returns))
+    return d
+
+
+def _eval_dir(root: Path, sweep: str, point: str, method: str, seed: int, m: dict[str, float]) -> Path:
+    d = root / sweep / point / method / f"seed{seed}"
+    d.mkdir(parents=True, exist_ok=True)
+    rec = {"spec": {"method": method, "seed": seed, "frames": 1000}, "name": method, "metrics": m, "n_scenarios": 4,
+           "experiment": {"sweep": sweep, "point": point, "profile": "quick"}, "env": {"reward": {"progress_weight": 0.0}},
+           "meta": {"git": {"commit": "1234567890ab", "dirty": False}}}
+    (d / "evaluation.json").write_text(json.dumps(rec))
+    return d
+
+
+def _synthetic(root: Path) -> None:
+    # sac: DCR 0.5 / 0.7 / 0.9 (mean 0.7, interval +-0.49683), SLR 0.6 / 0.6 / 0.9
+    for s, (dcr, slr) in enumerate([(0.5, 0.6), (0.7, 0.6), (0.9, 0.9)]):
+        _train_dir(root, "sac", s, _metrics(dcr, slr), returns=[(0, 0, 0.0), (500, 5, 10.0 * (s + 1)), (1000, 10, 20.0 * (s + 1))])
+    calls = root / "train" / "sac" / "seed0" / "logs" / "scalars" / "override" / "advisor"
+    calls.mkdir(parents=True)
+    (calls / "calls.csv").write_text("500,3\n1000,4\n")  # two logged windows: 7 calls in all
+    # ddpg: tight and high -> learned; random: DCR 0 / 0.1 / 0.2, SLR 0 / 0 / 0
+    for s, dcr in enumerate([0.80, 0.82, 0.84]):
+        _train_dir(root, "ddpg", s, _metrics(dcr, dcr))
+    for s, dcr in enumerate([0.0, 0.1, 0.2]):
+        _train_dir(root, "random", s, _metrics(dcr, 0.0), controller="random", frames=0)
+    # broken, unfinished (no final file), unfinished (short of its budget)
+    broken = _train_dir(root, "ppo", 0, _metrics(1, 1))
+    (broken / "final_metrics.json").write_text("{not json")
+    _train_dir(root, "ppo", 1, _metrics(1, 1), final=False)
+    _train_dir(root, "ppo", 2, _metrics(1, 1), frames=500, total=1000)
+    # a scenario sweep: N_OU = 3 and 7, two seeds of sac, one of random; one broken evaluation
+    for k, base in ((3, 0.8), (7, 0.4)):
+        for s in (0, 1):
+            _eval_dir(root, "scenario_n_ou", f"n_ou={k}", "sac", s, _metrics(base + 0.1 * s, base))
+        _eval_dir(root, "scenario_n_ou", f"n_ou={k}", "random", 0, _metrics(0.05, 0.0))
+    (_eval_dir(root, "scenario_n_ou", "n_ou=5", "sac", 0, _metrics(0, 0)) / "evaluation.json").write_text('{"spec": {}}')
+    # sensitivity: actor lr at 1e-4 (default, shared) and 1e-3, r8 weight at 2.0
+    for s in (0, 1):
+        _train_dir(root, "sac", s, _metrics(0.6 + 0.2 * s, 0.5), sweep="sensitivity", point="default")
+        _train_dir(root, "sac", s, _metrics(0.2, 0.1 * s), sweep="sensitivity", point="alr1e-3", extra_cfg={"algo.actor_lr": 1e-3})
+        _train_dir(root, "sac", s, _metrics(0.9, 0.9), sweep="sensitivity", point="r8_2", extra_cfg={"env.reward.sigma.7": 2.0})
+
+
+def test_report_on_synthetic_runs(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    root = tmp_path / "runs"
+    _synthetic(root)
+    res = report.build(root, tmp_path / "out")
+    out = tmp_path / "out"
+    t = res["tables"]
+    skipped = dict(res["skipped"])
+    assert skipped["train/ppo/seed0"].startswith("broken: final_metrics.json")
+    assert skipped["train/ppo/seed1"] == "unfinished: no final_metrics.json"
+    assert skipped["train/ppo/seed2"] == "unfinished: 500 of 1000 frames"
+    assert skipped["scenario_n_ou/n_ou=5/sac/seed0"].startswith("broken: evaluation.json lacks")
+    assert len(skipped) == 4
+    assert res["runs"] == 9 + 6 + 6
+
+    final = {r["method"]: r for r in t["train_final"]}
+    assert [r["method"] for r in t["train_final"]] == ["sac", "ddpg", "random"]  # the paper's order
+    assert final["sac"]["DCR"] == pytest.approx(0.7)
+    assert final["sac"]["DCR_lo"] == pytest.approx(0.7 - 0.49683, abs=1e-4)
+    assert final["sac"]["DCR_hi"] == pytest.approx(0.7 + 0.49683, abs=1e-4)
+    assert final["random"]["DCR"] == pytest.approx(0.1) and final["random"]["n_seeds"] == 3
+    learned = {r["method"]: r["learned"] for r in t["learned"]}
+    # sac's DCR interval [0.203, 1.197] overlaps random's [-0.148, 0.348]; ddpg's [0.770, 0.870] does not
+    assert learned == {"sac": "no", "ddpg": "yes"}
+
+    fig5 = {(r["N_OU"], r["method"]): r for r in t["fig5_scenario_n_ou"]}
+    assert fig5[(3, "sac")]["DCR"] == pytest.approx(0.85) and fig5[(7, "sac")]["DCR"] == pytest.approx(0.45)
+    assert fig5[(3, "sac")]["n_seeds"] == 2 and math.isnan(fig5[(3, "random")]["DCR_lo"])
+    # 95% interval of two values: mean +- 12.706 * sd / sqrt(2), sd = 0.0707
+    assert fig5[(3, "sac")]["DCR_hi"] - fig5[(3, "sac")]["DCR"] == pytest.approx(12.7062 * 0.05, abs=1e-3)
+    summary = {r["method"]: r for r in t["fig10_summary"]}
+    # seed 0: (0.8 + 0.4) / 2 = 0.6; seed 1: (0.9 + 0.5) / 2 = 0.7
+    assert summary["sac"]["DCR"] == pytest.approx(0.65) and summary["sac"]["SLR"] == pytest.approx(0.6)
+
+    alr = {(r["actor_lr"], r["method"]): r for r in t["fig11_sensitivity_actor_lr"]}
+    assert set(alr) == {(1e-4, "sac"), (1e-3, "sac")}  # the r8 = 2 runs are on another axis
+    assert alr[(1e-4, "sac")]["DCR"] == pytest.approx(0.7) and alr[(1e-3, "sac")]["SLR"] == pytest.approx(0.05)
+    r8 = {r["r8"]: r for r in t["fig12_sensitivity_r8"]}
+    assert set(r8) == {1.0, 2.0} and r8[2.0]["DCR"] == pytest.approx(0.9)
+
+    # training curves: the band's mean at 5 episodes is the mean of 10, 20, 30
+    xs, ms, lo, hi = report.band([report.training_curve(r, "episodes") for r in report.collect(root)[0]
+                                  if r.sweep == "train" and r.method == "sac"], n_points=3)
+    assert xs == [0, 5, 10] and ms == pytest.approx([0, 20, 40])
+    for stem in ("fig3_training_curves_episodes", "fig3_training_curves_frames", "fig5_scenario_n_ou",
+                 "fig10_summary_radar", "fig11_sensitivity_actor_lr", "fig12_sensitivity_r8"):
+        for ext in ("png", "pdf"):
+            assert (out / f"{stem}.{ext}").stat().st_size > 1000, stem
+    md = (out / "report.md").read_text()
+    assert "learning-aid world" in md and "| ddpg |" in md and "train/ppo/seed1`: unfinished" in md
+    assert "0.700 [0.203, 1.197]" in md and "torch | 2.13.0+cpu" in md
+    runs_csv = (out / "runs.csv").read_text()
+    assert "python -m uavlae.train +exp=sac seed=0" in runs_csv and "abcdef1234" in runs_csv
+    assert final["sac"]["advisor_calls"] == "7"
+
+    # more seeds and a new method, then aggregated again without touching the rest
+    _train_dir(root, "sac", 3, _metrics(0.7, 0.7))
+    _train_dir(root, "cpo", 0, _metrics(0.3, 0.3))
+    t2 = report.build(root, tmp_path / "out")["tables"]
+    final2 = {r["method"]: r for r in t2["train_final"]}
+    assert final2["sac"]["n_seeds"] == 4 and final2["sac"]["DCR"] == pytest.approx(0.7)
+    assert final2["cpo"]["n_seeds"] == 1 and final2["cpo"]["DCR"] == pytest.approx(0.3)
+
+
+def test_report_cli_names_a_missing_dir(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "experiments.report", str(tmp_path / "nope")], cwd=REPO_ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode != 0 and "is not a directory" in res.stderr
+
+
+# ---------------------------------------------------------------------------- train / evaluate
+
+
+def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):
+    from uavlae.checkpoint import LAST, PREV, checkpoint_dir, load_checkpoint
+    from uavlae.train import run
+
+    monkeypatch.chdir(tmp_path)  # a relative run_dir, as the sweeps give it
+    run_dir = tmp_path / "r"
+    args = ["+exp=sac", "run_dir=r", "experiment.reuse=true", *TINY]
+    first = run(_cfg(*args))
+    assert first["frames"] == 128 and first["episodes"] >= 0
+    stamp = (run_dir / "final_metrics.json").stat().st_mtime_ns
+    assert run(_cfg(*args)) == first and (run_dir / "final_metrics.json").stat().st_mtime_ns == stamp
+    # killed after 64 frames: the checkpoint of 64 frames is the last one, no final file
+    ckpts = checkpoint_dir(run_dir)
+    shutil.copy(ckpts / PREV, ckpts / LAST)
+    (run_dir / "final_metrics.json").unlink()
+    assert load_checkpoint(run_dir)[0]["counters"]["frames"] == 64
+    resumed = run(_cfg(*args))
+    assert resumed["frames"] == 128 and resumed["eval/DCR"] == pytest.approx(first["eval/DCR"])
+    assert resumed["actor_param_sum"] == pytest.approx(first["actor_param_sum"], rel=1e-6)
+    assert run(_cfg(*args)) == resumed  # finished now: kept as it is
+    with pytest.raises(ValueError, match=r"holds a run of another config .*trainer.total_frames"):
+        run(_cfg(*args[:-len(TINY)], *TINY[1:], "trainer.total_frames=256"))
+
+
+def test_episode_budget_stops_training(tmp_path):
+    from uavlae.train import run
+
+    # 10-step episodes (t_max) on 4 rows: 4 episodes end every 10 frames-per-row -> 8 episodes by 80 frames
+    final = run(_cfg("+exp=sac", f"run_dir={tmp_path / 'e'}", *TINY, "env.t_max=10", "trainer.total_frames=100000",
+                     "trainer.total_episodes=8", "trainer.frames_per_batch=8", "trainer.init_random_frames=8"))
+    assert final["episodes"] >= 8 and final["frames"] < 200
+
+
+def test_evaluate_honours_env_overrides(tmp_path):
+    from uavlae.envs.scenario import load_scenarios
+    from uavlae.evaluate import evaluate_checkpoint
+    from uavlae.train import run
+
+    run_dir = tmp_path / "sac"
+    run(_cfg("+exp=sac", f"run_dir={run_dir}", *TINY, "trainer.eval_episodes=4"))
+    over = ["env.ou.count.min=3", "env.ou.count.max=3", "env.ge.count.min=15", "env.ge.count.max=15"]
+    out = tmp_path / "ev"
+    agg = evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", *over, f"experiment.eval_dir={out}", "trainer.eval_max_steps=10",
+                                   "trainer.eval_episodes=4"), over)
+    rec = json.loads((out / "evaluation.json").read_text())
+    assert rec["spec"]["env_overrides"] == {"ou.count.min": 3, "ou.count.max": 3, "ge.count.min": 15, "ge.count.max": 15}
+    assert rec["env"]["ou"]["count"] == {"min": 3, "max": 3, "pad": 7}  # the training padding kept
+    assert rec["env"]["ge"]["count"] == {"min": 15, "max": 15, "pad": 15}
+    scen = load_scenarios(out / "eval_set.json")
+    assert len(scen) == 4 and rec["metrics"] == pytest.approx(agg)
+    for sc in scen:
+        d = sc.to_dict()
+        assert len(d["ou_pos"]) == 3 and len(d["ge_pos"]) == 15
+    # without overrides: the run's own world and evaluation set
+    evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", f"experiment.eval_dir={tmp_path / 'plain'}", "trainer.eval_max_steps=10",
+                             "trainer.eval_episodes=4"))
+    plain = json.loads((tmp_path / "plain" / "evaluation.json").read_text())
+    assert plain["spec"]["env_overrides"] == {} and plain["eval_set_file"] == str(run_dir / "eval_set.json")
+    assert plain["env"]["ou"]["count"] == {"min": 3, "max": 7, "pad": None}
+    # a controller (no checkpoint) flies the command line's world itself
+    ctrl = tmp_path / "random"
+    evaluate_checkpoint(_cfg("+exp=random", "env.ou.count.min=5", "env.ou.count.max=5", f"experiment.eval_dir={ctrl}",
+                             "trainer.eval_max_steps=10", "trainer.eval_episodes=2"), ["env.ou.count.min=5", "env.ou.count.max=5"])
+    rec = json.loads((ctrl / "evaluation.json").read_text())
+    assert rec["spec"]["checkpoint"] is None and rec["spec"]["method"] == "random" and rec["n_scenarios"] == 2
+    assert [len(sc.to_dict()["ou_pos"]) for sc in load_scenarios(ctrl / "eval_set.json")] == [5, 5]
+    with pytest.raises(ValueError, match="exceeds its padding maximum pad=7"):
+        evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", "env.ou.count.max=8", f"experiment.eval_dir={tmp_path / 'x'}"),
+                            ["env.ou.count.max=8"])
+
+
+# ---------------------------------------------------------------------------- multirun
+
+
+def _sweep(*args: str, timeout: int = 400) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "UAVLAE_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
+    res = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res
+
+
+def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
+    root = tmp_path / "exp"
+    tiny = [t for t in TINY if not t.startswith("logger.")]
+    _sweep("-m", "uavlae.train", "-m", "+sweep=train", "+exp=sac,random", "seed=0", f"experiment.root={root}", *tiny)
+    for method in ("sac", "random"):
+        final = json.loads((root / "train" / method / "seed0" / "final_metrics.json").read_text())
+        assert final["frames"] == (128 if method == "sac" else 0)
+    meta = json.loads((root / "train" / "sac" / "seed0" / "meta.json").read_text())
+    assert meta["command"].startswith("python -m uavlae.train ") and "+exp=sac" in meta["command"]
+    _sweep("-m", "uavlae.evaluate", "-m", "+sweep=scenario_n_ou", "+exp=sac", "seed=0", "env.ou.count.max=3,7",
+           f"experiment.root={root}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=1")
+    for k in (3, 7):
+        scen = json.loads((root / "eval_sets" / f"n_ou_{k}.json").read_text())
+        assert [len(s["ou_pos"]) for s in scen] == [k, k]
+        rec = json.loads((root / "scenario_n_ou" / f"n_ou={k}" / "sac" / "seed0" / "evaluation.json").read_text())
+        assert rec["env"]["ou"]["count"] == {"min": k, "max": k, "pad": 7}
+    _sweep("-m", "experiments.report", str(root))
+    md = (root / "report" / "report.md").read_text()
+    assert "python -m uavlae.train -m +sweep=train +exp=sac,random seed=0" in md
+    assert "Fig. 5: metrics against N_OU" in md and (root / "report" / "fig5_scenario_n_ou.pdf").is_file()
+    rows = (root / "report" / "runs.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2 + 2
+
+
+def test_ray_sweep_on_a_local_instance(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+    root = tmp_path / "exp"
+    # address null: the launcher starts a local Ray instance of 2 CPUs for the sweep and stops it
+    res = _sweep("-m", "uavlae.train", "-m", "+sweep=train", "+exp=random", "seed=0,1", "hydra/launcher=ray_local",
+                 f"experiment.root={root}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=0")
+    assert "Ray Launcher is launching 2 jobs" in res.stdout + res.stderr
+    finals = [json.loads((root / "train" / "random" / f"seed{s}" / "final_metrics.json").read_text()) for s in (0, 1)]
+    assert all(f["frames"] == 0 and 0 <= f["eval/DCR"] <= 1 for f in finals)
+    pids = {json.loads((root / "train" / "random" / f"seed{s}" / "meta.json").read_text())["pid"] for s in (0, 1)}
+    assert len(pids) == 2 and os.getpid() not in pids  # two Ray workers, not this process
+
+
+def test_wandb_runs_are_grouped_and_tagged_by_sweep_and_method_with_trajectory_images(tmp_path):
+    from uavlae.factories import make_logger
+
+    cfg = _cfg("+sweep=train", "+profile=quick", "+exp=sac", "seed=1", "logger.wandb.mode=offline")
+    logger = make_logger(cfg, tmp_path, "sac-test", {"name": "sac"})
+    try:
+        run = logger.loggers["wandb"].experiment
+        assert run.group == "train"
+        assert set(run.tags) == {"method:sac", "seed:1", "sweep:train", "point:default", "profile:quick"}
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        plt.plot([0, 1], [0, 1])
+        plt.savefig(tmp_path / "trajectory_0.png")
+        plt.close()
+        logger.log_metrics({"eval/DCR": 0.5}, step=64)
+        logger.log_images({"eval/trajectory_0": tmp_path / "trajectory_0.png"}, step=64)
+    finally:
+        logger.close()
+    assert list((tmp_path / "wandb").glob("offline-run-*/files/media/images/eval/trajectory_0_*.png"))
