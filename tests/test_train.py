@@ -96,8 +96,9 @@ def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
     assert len(evaluators) == 1 and evaluators[0].env.compiled  # the evaluation env too
 
 
-def test_heuristic_evaluates(tmp_path):
-    final = _run("heuristic", tmp_path / "h", "trainer.eval_max_steps=40")
+@pytest.mark.parametrize("exp", ["heuristic", "heuristic_planner"])
+def test_heuristic_evaluates(tmp_path, exp):
+    final = _run(exp, tmp_path / "h", "trainer.eval_max_steps=40")
     _check_run_outputs(tmp_path / "h", final, trained=False)
     assert final["frames"] == 0 and not (tmp_path / "h" / "checkpoints").exists()
 

@@ -128,6 +128,7 @@ class RunConfig(_Strict):
 
     name: str = Field(min_length=1)
     controller: Literal["learner", "heuristic", "llm"]
+    heuristic_kind: Literal["greedy", "planner"]
     seed: int
     device: str
     threads: int = Field(ge=1)
@@ -153,7 +154,7 @@ def validate_config(cfg: DictConfig) -> None:
     """Validate every group of a composed config; ``ValueError`` names the bad field."""
     root = {k: cfg[k] for k in RunConfig.model_fields}
     run = _validate(RunConfig, root, "config")
-    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic"}
+    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "greedy"}
     unknown = sorted(set(cfg.keys()) - known - {"hydra"})
     if unknown:
         raise ValueError(f"unknown top-level config keys {unknown}")
@@ -161,9 +162,11 @@ def validate_config(cfg: DictConfig) -> None:
     make_trainer_config(cfg.trainer)
     make_logger_config(cfg.logger)
     adv = make_advisor_config(cfg.advisor)
+    from uavlae.policies.greedy import make_greedy_config
     from uavlae.policies.heuristic import make_heuristic_config
 
     make_heuristic_config(cfg.heuristic)
+    make_greedy_config(cfg.greedy)
     if run.controller == "learner":
         if cfg.get("algo") is None:
             raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo)")
@@ -229,7 +232,13 @@ def behaviour_actor(learner: Any) -> Any:
 
 
 def make_heuristic(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
-    """The ``heuristic`` node -> :class:`uavlae.policies.heuristic.HeuristicPolicy`."""
+    """``heuristic_kind`` -> the paper's greedy controller (:class:`uavlae.policies.greedy.GreedyPolicy`,
+    the ``greedy`` node) or the visibility-graph planner beyond the paper
+    (:class:`uavlae.policies.heuristic.HeuristicPolicy`, the ``heuristic`` node)."""
+    if cfg.heuristic_kind == "greedy":
+        from uavlae.policies.greedy import GreedyPolicy
+
+        return GreedyPolicy(env_cfg, _container(cfg.greedy))
     from uavlae.policies.heuristic import HeuristicPolicy
 
     return HeuristicPolicy(env_cfg, _container(cfg.heuristic))
