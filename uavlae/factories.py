@@ -169,7 +169,7 @@ def validate_config(cfg: DictConfig) -> None:
     make_greedy_config(cfg.greedy)
     if run.controller == "learner":
         if cfg.get("algo") is None:
-            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo)")
+            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo|wang)")
         from uavlae.algos import MAKERS
 
         name = cfg.algo.name
@@ -192,8 +192,12 @@ def _algo_config(cfg: Any) -> Any:
     from uavlae.algos.ppo import make_ppo_config
     from uavlae.algos.ppo_lagrangian import make_cpo_config
     from uavlae.algos.sac import make_sac_config
+    from uavlae.algos.wang import make_wang_config
 
-    makers = {"sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config}
+    makers = {
+        "sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config,
+        "wang": make_wang_config,
+    }
     return makers[cfg.name](cfg)
 
 
@@ -223,7 +227,7 @@ def make_env(
 def make_learner(algo_cfg: Any, env: UAVEnv) -> Any:
     """``conf/algo`` -> a learner (``actor``, ``update``, ``state_dict``) sized for ``env``."""
     obs_dim = env.observation_spec["observation"].shape[-1]
-    return _make_learner(algo_cfg, obs_dim, env.action_spec)
+    return _make_learner(algo_cfg, obs_dim, env.action_spec, layout=env.layout)
 
 
 def behaviour_actor(learner: Any) -> Any:
