@@ -89,12 +89,13 @@ def test_building_ahead_turns_by_the_smaller_free_turn_and_keeps_the_side():
     bz = [(120, 94, 160, 150)]
     a = _act(pol, (105, 88), [(200, 88, 2.0)], bz=bz)
     assert a == pytest.approx([math.cos(math.radians(22.5)), -math.sin(math.radians(22.5))], abs=1e-5)
-    # next slot at the mirror position near the top corner (y1 + 8 = 158): a fresh policy turns
-    # left by k = 2; this one keeps turning right, the smallest free right turn being k = 5
-    top = dict(bz=bz, step=1)
-    fresh = _act(GreedyPolicy(), (105, 156), [(200, 156, 2.0)], **top)
+    # next slot, the building mirrored about y = 88 (BZ (120, 26)-(160, 82): inflated y in [18, 90]):
+    # now the left turn by k = 2 is the smaller free one (the mirror of the above), which a fresh
+    # policy takes; this one keeps its side and turns right, by k = 5 (the end's x below 112)
+    mirrored = dict(bz=[(120, 26, 160, 82)], step=1)
+    fresh = _act(GreedyPolicy(), (105, 88), [(200, 88, 2.0)], **mirrored)
     assert fresh == pytest.approx([math.cos(math.radians(22.5)), math.sin(math.radians(22.5))], abs=1e-5)
-    kept = _act(pol, (105, 156), [(200, 156, 2.0)], **top)
+    kept = _act(pol, (105, 88), [(200, 88, 2.0)], **mirrored)
     assert kept == pytest.approx([math.cos(math.radians(56.25)), -math.sin(math.radians(56.25))], abs=1e-5)
 
 
@@ -138,6 +139,18 @@ def test_loop_escape_abandons_a_ge_without_progress():
     # abandoned for the episode; a new episode (step 0) forgets it
     assert _act(pol, (100, 100), ges, step=61) == pytest.approx([0.0, 1.0], abs=1e-6)
     assert _act(pol, (100, 100), ges, step=0) == pytest.approx([1.0, 0.0], abs=1e-6)
+
+
+def test_memory_does_not_leak_to_another_scenario_at_the_next_step():
+    # row 0 abandons its GE 0 after 60 slots without progress; at the next step the row holds
+    # another scenario (SAC+Heuristic hands over other rows): GE 0 (130, 100) is the nearest, east
+    pol = GreedyPolicy()
+    ges = [(200, 100, 2.0), (100, 300, 2.0)]
+    for step in range(61):
+        pol.act(_state((100, 100), ges, step=step))
+    assert _act(pol, (100, 100), ges, step=61) == pytest.approx([0.0, 1.0], abs=1e-6)
+    other = [(130, 100, 2.0), (100, 400, 2.0)]
+    assert _act(pol, (100, 100), other, step=62) == pytest.approx([1.0, 0.0], abs=1e-6)
 
 
 def test_memory_round_trips_for_exact_resume():

@@ -36,8 +36,9 @@ The rules, applied every slot in this order:
    re-decides every slot, so it waits until the OU has passed.
 
 The memory (target, side, stall counter, abandoned GEs, homing latch) is per batch row; it
-restarts for a row whose ``step`` is not the previous call's plus one, and for every row when
-the batch size changes (SAC+Heuristic passes only the triggered rows).
+restarts for a row whose ``step`` is not the previous call's plus one or whose GEs are not the
+previous call's, and for every row when the batch size changes (SAC+Heuristic passes only the
+triggered rows).
 """
 
 from __future__ import annotations
@@ -61,7 +62,6 @@ STATE_IN_KEYS = (
     "ou_mask", "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask", "landing",
 )
 _EPS = 1e-3  # metres: a point already nearer an obstacle than the clearance may not get nearer
-_MEMORY = ("valid", "last_step", "target", "side", "side_ttl", "best_dist", "stall", "homing", "abandoned")
 
 
 class GreedyConfig(BaseModel):
@@ -152,8 +152,12 @@ class GreedyPolicy(TensorDictModuleBase):
                 "stall": torch.zeros(B, dtype=torch.int64, device=p.device),
                 "homing": torch.zeros(B, dtype=torch.bool, device=p.device),
                 "abandoned": torch.zeros(B, G, dtype=torch.bool, device=p.device),
+                "sig": torch.zeros(B, 2 * G, dtype=p.dtype, device=p.device),
             }
-        fresh = ~mem["valid"] | (step != mem["last_step"] + 1)
+        # a row is the same episode only if its step follows on and its GEs are the same ones
+        # (SAC+Heuristic hands over a different subset of rows from call to call)
+        sig = s["ge_pos"].to(p.dtype).flatten(1)
+        fresh = ~mem["valid"] | (step != mem["last_step"] + 1) | (sig != mem["sig"]).any(-1)
         mem = {k: v.clone() for k, v in mem.items()}
         mem["target"] = torch.where(fresh, -1, mem["target"])
         mem["side"] = torch.where(fresh, 0.0, mem["side"])
@@ -162,6 +166,7 @@ class GreedyPolicy(TensorDictModuleBase):
         mem["stall"] = torch.where(fresh, 0, mem["stall"])
         mem["homing"] = mem["homing"] & ~fresh
         mem["abandoned"] = mem["abandoned"] & ~fresh.unsqueeze(-1)
+        mem["sig"] = sig.clone()
         return mem
 
     def _choose_target(self, s: dict[str, Tensor], mem: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
