@@ -48,19 +48,20 @@ bench-sac: $(STAMP)
 bench-env: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py --compile
 
-# This checkout's env step against an earlier commit, side by side -> benchmarks/env_ab.json
-.PHONY: bench-env-ab
-AB_BASE ?= eedaaf6
-bench-env-ab: $(STAMP)
-	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 64 1
-	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --batches 4096 1024 --threads 2 \
-		--out benchmarks/env_ab_2threads.json
+# Training frames/s of +exp=sac, this checkout against another checkout with its own .venv
+# (e.g. `git worktree add ../base <commit>` and `make setup` there), alternating subprocesses
+# -> benchmarks/train_ab.json
+.PHONY: bench-train
+AB_BASE ?=
+bench-train: $(STAMP)
+	test -n "$(AB_BASE)" || { echo "set AB_BASE=<path of the other checkout>"; exit 2; }
+	$(BIN)/python benchmarks/train_ab.py --base $(AB_BASE)
 
-# Where a compiled B = 4096 call goes, on 1 and 2 threads, and the call without its physics
-# -> benchmarks/env_breakdown.json
-.PHONY: bench-env-breakdown
-bench-env-breakdown: $(STAMP)
-	$(BIN)/python benchmarks/env_breakdown.py
+# The env step against the same other checkout, compiled, at B = 4096 and 64 -> benchmarks/env_ab.json
+.PHONY: bench-env-ab
+bench-env-ab: $(STAMP)
+	test -n "$(AB_BASE)" || { echo "set AB_BASE=<path of the other checkout>"; exit 2; }
+	$(BIN)/python benchmarks/env_ab.py --base $(AB_BASE) --compile --batches 4096 64
 
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
@@ -73,7 +74,7 @@ bench-follow: $(STAMP)
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun
 
-# The paper's table (issue 4): every method at equal training frames, same seeds, one fixed
+# The paper's table: every method at equal training frames, same seeds, one fixed
 # evaluation set -> results/paper_table.{csv,md,json}. FRAMES / SEEDS / LLM_CAP_MIN to change.
 .PHONY: paper-table
 FRAMES ?= 12288
@@ -89,12 +90,9 @@ bench-breakdown: $(STAMP)
 	$(BIN)/python benchmarks/ttt_cost_breakdown.py
 
 # Time to target, our SAC vs Stable-Baselines3's (the `bench` extra) -> benchmarks/time_to_target.json
-# TTT_ARGS adds options, e.g. the many-scenarios regime of benchmarks/time_to_target.md:
-#   make bench-ttt TTT_CAP_MIN=9 TTT_ARGS="--env-batch 64 --utd 0.25 --out benchmarks/time_to_target_b64_utd025.json"
-# or the issue's 30 minutes on the world with the learning aids (one method per run), as in the runs
-# that reached the target (benchmarks/time_to_target.md, "Where it stands"):
+# TTT_ARGS adds options, e.g. the setting of docs/performance.md that reaches the target:
 #   make bench-ttt TTT_CAP_MIN=30 TTT_ARGS="--env shaped_geodesic --env-batch 64 --utd 0.25 --eval-every 12288 \
-#     --seed 1 --methods uavlae_sac --ours-override trainer.compile_env=true --out benchmarks/ttt_seed1.json"
+#     --seed 1 --methods uavlae_sac --ours-override trainer.compile_env=true"
 .PHONY: bench-ttt
 TTT_CAP_MIN ?= 15
 TTT_ARGS ?=

@@ -3,22 +3,12 @@
 Measures, side by side in one run (STYLE.md rule 10), on the same replay-shaped batch:
 
 - ``uavlae_fused``: :func:`uavlae.algos.sac.make_sac` as shipped (``loss_impl: fused``: SACLoss's
-  gradients written out by hand, ``uavlae.algos.sac_fused``; the fused Adam kernel called
-  directly; the target lerp in one foreach call), ``update(batch)`` including the log
-  ``.item()``s;
+  gradients written out by hand, ``uavlae.algos.sac_fused``; ``Adam(fused=True).step()``; the
+  target lerp), ``update(batch)`` including the log ``.item()``s;
 - ``torchrl_eager``: ``loss_impl: torchrl`` (torchrl ``SACLoss`` forward, twin Q under vmap,
   autograd, one fused Adam with three parameter groups), the reference implementation;
 - ``torchrl_compiled``: the same with ``compile: true`` (``torch.compile`` of the loss, inductor
   CPU vectors of ``compile_simdlen: 128`` bits, see ``uavlae.algos.sac.compile_loss``);
-- ``compiled_simd_auto``: the same with ``compile_simdlen: null`` (inductor picks, 256-bit on
-  AVX2): isolates what the vector width is worth;
-- ``compiled_whole_update``: SACLoss, backward, Adam step and target lerp as one compiled
-  function (dynamo's ``trace_autograd_ops``, foreach capturable Adam, 128-bit vectors): the
-  alternative of compiling more than the loss;
-- ``compiled_skip_guards``: ``torchrl_compiled`` run under
-  ``torch.compiler.set_stance(skip_guard_eval_unsafe=True)`` after warm-up: NOT offered by the
-  learner (unsafe: a changed module or batch would silently reuse a stale graph); measured
-  only to price dynamo's guard evaluation;
 - ``plain_torch_reference``: the same maths hand-written on bare ``nn.Module``s and tensors
   (two Q nets, targets, tanh-Gaussian actor, learned alpha), the floor of the eager Python
   overhead.
@@ -29,9 +19,7 @@ Variants alternate within each of ``--repeats`` short rounds; the median and bes
 and the per-round (paired) ratio to the reference are reported, so a noisy shared machine hurts
 them alike; the load average before and after is recorded with the machine.
 
-    .venv/bin/python benchmarks/sac_update_speed.py            # writes sac_update_speed.json
-    .venv/bin/python benchmarks/sac_update_speed.py --out benchmarks/sac_update_speed_variants.json \
-        --compiled torchrl_compiled,compiled_simd_auto,compiled_whole_update,compiled_skip_guards
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sac_update_speed.py   # (make bench-sac) -> sac_update_speed.json
 """
 
 from __future__ import annotations
@@ -56,12 +44,10 @@ from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
-from uavlae.algos.common import to_floats  # noqa: E402
 from uavlae.algos.sac import make_sac  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 from uavlae.factories import dump_json  # noqa: E402
 
-TARGET_UPS = 300.0
 
 
 
@@ -142,46 +128,6 @@ class ReferenceSAC:
         return {"loss_qvalue": q_loss.item(), "loss_actor": actor_loss.item(), "loss_alpha": alpha_loss.item()}
 
 
-def compiled_skip_guards(spec, obs_dim: int, batch):
-    """``compile: true`` with dynamo's guards skipped once warm (unsafe; measurement only)."""
-    sac = make_sac({"loss_impl": "torchrl", "compile": True}, obs_dim, spec)
-    for _ in range(3):
-        sac.update(batch)
-
-    def update(b):
-        with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
-            return sac.update(b)
-
-    return update
-
-
-def compiled_whole_update(spec, obs_dim: int):
-    """Loss + backward + Adam + target lerp in one ``torch.compile`` (zero_grad stays outside:
-    dynamo refuses to trace it). Same maths as ``SAC.update``; foreach capturable Adam because
-    dynamo compiles that one."""
-    sac = make_sac({"loss_impl": "torchrl"}, obs_dim, spec)
-    groups = [{k: v for k, v in g.items() if k in ("params", "lr", "name")} for g in sac.optimisers["sac"].param_groups]
-    opt = torch.optim.Adam(groups, foreach=True, capturable=True)
-    loss, keys = sac.loss, list(sac.loss.in_keys)
-
-    def step(batch):
-        out = loss(batch)
-        (out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]).backward()
-        opt.step()
-        with torch.no_grad():
-            torch._foreach_lerp_(sac._targets, sac._sources, sac._tau)
-        return {k: out[k].detach() for k in ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")}
-
-    step_c = torch.compile(step, options={"cpp.simdlen": sac.cfg.compile_simdlen})
-
-    def update(batch):
-        opt.zero_grad(set_to_none=True)
-        with torch._dynamo.config.patch(trace_autograd_ops=True):  # backward inside the graph
-            return to_floats(step_c(batch.select(*keys)))
-
-    return update
-
-
 def timed(update, batch, steps: int) -> float:
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -197,13 +143,6 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--repeats", type=int, default=12, help="rounds; variants alternate within each")
     p.add_argument("--no-compile", action="store_true")
-    p.add_argument(
-        "--compiled",
-        default="torchrl_compiled",
-        help="compiled variants to build, comma list of torchrl_compiled, compiled_simd_auto, "
-        "compiled_whole_update, compiled_skip_guards. They share dynamo's cache on SACLoss.forward, "
-        "so each call also checks the others' guards: the default pair has one cache entry",
-    )
     p.add_argument("--out", type=Path, default=Path(__file__).with_suffix(".json"))
     args = p.parse_args()
 
@@ -227,13 +166,8 @@ def main() -> None:
     compiled_info: dict = {"attempted": not args.no_compile}
     builders = {
         "torchrl_compiled": lambda: make_sac({"loss_impl": "torchrl", "compile": True}, args.obs_dim, spec).update,
-        "compiled_simd_auto": lambda: make_sac(
-            {"loss_impl": "torchrl", "compile": True, "compile_simdlen": None}, args.obs_dim, spec
-        ).update,
-        "compiled_whole_update": lambda: compiled_whole_update(spec, args.obs_dim),
-        "compiled_skip_guards": lambda: compiled_skip_guards(spec, args.obs_dim, batch),
     }
-    wanted = [] if args.no_compile else [n for n in args.compiled.split(",") if n]
+    wanted = [] if args.no_compile else list(builders)
     for name in wanted:
         build = builders[name]
         try:
@@ -275,8 +209,6 @@ def main() -> None:
         "updates_per_s_best_round": {k: round(max(v), 1) for k, v in rounds.items()},
         "updates_per_s_rounds": {k: [round(x, 1) for x in v] for k, v in rounds.items()},
         "ratio_to_reference_paired_median": {k: round(v, 3) for k, v in paired.items()},
-        "target_updates_per_s": TARGET_UPS,
-        "meets_target_median": {k: v >= TARGET_UPS for k, v in median.items()},
         "compile": compiled_info,
         "machine": describe_machine(),
         "load_average_1_5_15": {"before": [round(x, 2) for x in load_before], "after": [round(x, 2) for x in os.getloadavg()]},

@@ -1,4 +1,4 @@
-"""Time to target (issue 4): wall-clock until the deterministic SAC actor reaches DCR >= 0.9,
+"""Time to target: wall-clock until the deterministic SAC actor reaches DCR >= 0.9,
 CR <= 0.1 and SLR >= 0.9 on the fixed evaluation set, for our SAC (``uavlae.train``) and for
 Stable-Baselines3's SAC on the gymnasium adapter, side by side in one run on one machine.
 

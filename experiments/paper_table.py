@@ -1,4 +1,4 @@
-"""The paper's comparison table (issue 4, "Measured results"): every method at equal training
+"""The paper's comparison table: every method at equal training
 frames and the same seeds, evaluated on one fixed evaluation set.
 
     python experiments/paper_table.py --frames 12288 --seeds 0        # what `make paper-table` runs
@@ -198,7 +198,7 @@ def write_outputs(rows: list[dict], table: list[dict], a: argparse.Namespace, me
         w.writerows(rows)
     (out / "paper_table.json").write_text(json.dumps({**meta, "table": table, "runs": rows}, indent=1) + "\n")
     lines = [
-        "# Paper table (issue 4): default scenario distribution",
+        "# Paper table: default scenario distribution",
         "",
         f"Command: `{meta['command']}`  ",
         f"Date: {meta['date']}  ",
@@ -211,7 +211,7 @@ def write_outputs(rows: list[dict], table: list[dict], a: argparse.Namespace, me
         f"(load average at start {meta['machine']['load_average_1_5_15']}), torch {meta['machine']['torch']}, 1 thread  ",
         "Code (per run, from its meta.json): "
         + ", ".join(sorted({f"{r['git_commit']}{' (dirty tree)' if r.get('git_dirty') else ''}" for r in rows}))
-        + "; the other engineers' work moves the tree, so runs can differ in commit  ",
+        + "; runs made at different times can differ in commit  ",
         f"Total wall time: {meta['total_wall_s'] / 60:.1f} min (sum over the runs, reused ones included)",
         "",
         "Mean ± std over seeds (std only with 2+ seeds). DCR, SLR: higher is better; CR, RVR, ECR: lower is better. "

@@ -174,7 +174,7 @@ def test_fast_sample_equals_torchrl_sample():
     for data in batches:  # 40 then 80 transitions: the second extend wraps the 60-slot storage
         fast.extend(data)
         stock.extend(data)
-        assert fast._fast_sample_ok()
+        assert fast._gather_ok()
         for _ in range(5):
             a = fast.sample()
             b = TensorDictReplayBuffer.sample(stock)  # the stock path on the twin buffer

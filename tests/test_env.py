@@ -124,3 +124,17 @@ def test_stepping_a_root_without_its_state_names_the_missing_entries():
     del td["state", "position"], td["state", "energy_used"]
     with pytest.raises(KeyError, match=r"no \('state', key\) for \['position', 'energy_used'\]"):
         env._step(td)
+
+
+def test_env_contract_lists_the_state_table():
+    """docs/env_contract.md shows the raw state exactly as STATE_TABLE (which the specs use) has it."""
+    from pathlib import Path
+
+    from uavlae.envs.world import state_table_markdown
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "env_contract.md").read_text()
+    assert state_table_markdown() in doc
+    env = UAVEnv(batch_size=[2], seed=0)
+    assert set(env.observation_spec["state"].keys()) == set(env.raw_state_keys)
+    assert env.observation_spec["state", "served_ge"].dtype == torch.int64
+    assert env.observation_spec["state", "ge_pos"].shape == (2, env.cfg.ge.count.padded, 2)

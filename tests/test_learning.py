@@ -1,4 +1,4 @@
-"""Learning test (issue 4), behind ``-m slow``: SAC on a small fixed scenario set clearly beats a
+"""Learning test, behind ``-m slow``: SAC on a small fixed scenario set clearly beats a
 random policy in DCR within a short budget.
 
     .venv/bin/python -m pytest -m slow tests/test_learning.py

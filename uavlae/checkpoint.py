@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import os
 import random
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from uavlae.files import atomic_write
 
 LAST, PREV = "last.pt", "prev.pt"
 FORMAT_VERSION = 1
@@ -52,41 +53,13 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
 
 
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:  # pragma: no cover - platforms without directory fds
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike[str], keep: int = 2) -> Path:
     """Write ``state`` atomically as ``last.pt`` (the previous ``last.pt`` becomes ``prev.pt``
     when ``keep`` is 2). Returns the path of ``last.pt``."""
     d = checkpoint_dir(run_dir)
     d.mkdir(parents=True, exist_ok=True)
     state = {"format_version": FORMAT_VERSION, **state}
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(state, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        last = d / LAST
-        if last.exists() and keep >= 2:
-            os.replace(last, d / PREV)  # from here until the next line only prev.pt exists
-        os.replace(tmp, last)
-        _fsync_dir(d)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return last
+    return atomic_write(d / LAST, lambda fh: torch.save(state, fh), previous=d / PREV if keep >= 2 else None)
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:

@@ -249,57 +249,43 @@ class UAVCollector:
             close()
 
 
-def _gather(td: TensorDictBase, index: torch.Tensor, batch_size: torch.Size) -> TensorDictBase:
-    """``td[index]`` for a 1-D integer ``index``: every leaf gathered with ``index_select``, the
-    nested TensorDicts rebuilt without re-validating shapes (they are ``td``'s, cut to ``index``)."""
-    out = {}
-    for key, val in td.items():
-        if isinstance(val, TensorDict):
-            out[key] = _gather(val, index, batch_size)
-        else:
-            out[key] = torch.index_select(val, 0, index)
-    return TensorDict._new_unsafe(out, batch_size=batch_size, device=td.device)
+def _gather(td: TensorDictBase, index: torch.Tensor, batch_size: torch.Size) -> TensorDict:
+    """``td[index]`` for a 1-D integer ``index``: every leaf gathered with ``index_select``."""
+    return TensorDict(
+        {k: _gather(v, index, batch_size) if isinstance(v, TensorDictBase) else torch.index_select(v, 0, index)
+         for k, v in td.items()},
+        batch_size=batch_size, device=td.device,
+    )
 
 
 class UniformReplayBuffer(TensorDictReplayBuffer):
-    """torchrl's ``TensorDictReplayBuffer`` with a fast uniform ``sample()``.
+    """torchrl's ``TensorDictReplayBuffer`` whose plain ``sample()`` draws the indices with its
+    own sampler and gathers the stored leaves directly, through the buffer's public ``sampler``
+    and ``storage``. The result, ``"index"`` included, equals the stock sample exactly
+    (``tests/test_collect.py``) at less than its cost per batch (docs/performance.md). With
+    ``return_info``, another batch size, a transform, or storage other than a
+    ``LazyTensorStorage`` holding one TensorDict, the stock ``sample()`` answers."""
 
-    The stock ``sample()`` indexes the stored TensorDict (``storage[index]``) and wraps it in
-    locks, pytree maps and info handling: ~2-4 ms per batch of 256 on one CPU core, as much as a
-    whole fused SAC update. Here, in the common case (a ``RandomSampler`` over an initialised
-    one-dimensional ``LazyTensorStorage`` holding a TensorDict, no transform, no sample unit, no
-    prefetch), the indices are drawn by the same sampler from the same generator and every leaf
-    is gathered with one ``index_select`` (~0.25 ms); the result, ``"index"`` included, equals the
-    stock sample exactly (``tests/test_collect.py``). Anything else goes through the stock path.
-    """
-
-    def _fast_sample_ok(self) -> bool:
-        storage = getattr(self, "_storage", None)
+    def _gather_ok(self) -> bool:
+        storage = self.storage
         return (
-            type(getattr(self, "_sampler", None)) is RandomSampler
-            and isinstance(storage, LazyTensorStorage)
-            and not isinstance(storage, LazyMemmapStorage)
-            and storage.initialized
+            type(self.sampler) is RandomSampler
+            and type(storage) is LazyTensorStorage
             and storage.ndim == 1
-            and type(getattr(storage, "_storage", None)) is TensorDict
-            and getattr(self, "_sample_unit", None) is None
-            and not getattr(self._writer, "tracks_generations", True)
-            and (self._transform is None or len(self._transform) == 0)
-            and not getattr(self, "_prefetch", True)
             and len(storage) > 0
+            and (self.transform is None or len(self.transform) == 0)
         )
 
     def sample(self, batch_size: int | None = None, return_info: bool = False, include_info: bool | None = None) -> Any:
-        if return_info or include_info is not None or not self._fast_sample_ok():
+        if (return_info or include_info is not None or self.batch_size is None
+                or batch_size not in (None, self.batch_size) or not self._gather_ok()):
             return super().sample(batch_size, return_info=return_info, include_info=include_info)
-        if batch_size is None:
-            batch_size = self._batch_size
-        if batch_size is None or (self._batch_size is not None and batch_size != self._batch_size):
-            return super().sample(batch_size)  # its error or warning
-        index, _ = self._sampler.sample(self._storage, batch_size)
-        stored = self._storage._storage
-        index = index.to(stored.device) if stored.device is not None else index
-        data = _gather(stored, index, torch.Size([batch_size]))
+        index, _ = self.sampler.sample(self.storage, self.batch_size)
+        stored = self.storage.get(slice(None))  # a view of the filled rows
+        if not isinstance(stored, TensorDict):
+            return super().sample(batch_size)
+        data = _gather(stored, index.to(stored.device) if stored.device is not None else index,
+                       torch.Size([self.batch_size]))
         data.set("index", index)
         return data
 

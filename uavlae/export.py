@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from uavlae.files import atomic_write
 from uavlae.factories import CONF_DIR, package_versions, without_hydra_output
 
 
@@ -80,15 +80,7 @@ def export_actor(learner: Any, action_spec: Any, path: str | Path, meta: dict[st
     batch = torch.export.Dim("batch", min=1)
     with torch.no_grad():
         program = torch.export.export(module, (example,), dynamic_shapes={"observation": {0: batch}})
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        torch.export.save(program, str(tmp), extra_files={"meta.json": json.dumps(meta)})
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
 
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:

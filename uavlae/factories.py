@@ -10,7 +10,6 @@ that name the field); the env, algo, heuristic and LLM models live with their co
 from __future__ import annotations
 
 import importlib.metadata as metadata
-import json
 import os
 import subprocess
 import sys
@@ -20,17 +19,15 @@ from typing import Any, Literal
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
+from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
+from uavlae.validation import StrictModel
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONF_DIR = REPO_ROOT / "conf"
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
 
 def _container(cfg: Any) -> dict[str, Any]:
@@ -59,7 +56,7 @@ def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
 # ---------------------------------------------------------------------------- configs
 
 
-class TrainerConfig(_Strict):
+class TrainerConfig(StrictModel):
     """``conf/trainer``: the loop's numbers."""
 
     total_frames: int = Field(ge=1)
@@ -92,7 +89,7 @@ class TrainerConfig(_Strict):
         return self
 
 
-class AdvisorConfig(_Strict):
+class AdvisorConfig(StrictModel):
     """``conf/advisor``: who overrides the learner's action, and when (SPEC.md §8)."""
 
     mode: Literal["proximity", "fixed_prob", "always", "never"]
@@ -108,7 +105,7 @@ class AdvisorConfig(_Strict):
         return self
 
 
-class WandbConfig(_Strict):
+class WandbConfig(StrictModel):
     mode: Literal["offline", "online", "disabled"]
     project: str
     entity: str | None
@@ -116,14 +113,14 @@ class WandbConfig(_Strict):
     tags: tuple[str, ...]
 
 
-class LoggerConfig(_Strict):
+class LoggerConfig(StrictModel):
     """``conf/logger``."""
 
     csv: bool
     wandb: WandbConfig
 
 
-class RunConfig(_Strict):
+class RunConfig(StrictModel):
     """The root keys of ``conf/config.yaml``."""
 
     name: str = Field(min_length=1)
@@ -432,8 +429,3 @@ def redact_secrets(cfg_dict: dict[str, Any]) -> dict[str, Any]:
     return walk(cfg_dict)
 
 
-def dump_json(path: Path, obj: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, default=str))
-    os.replace(tmp, path)

@@ -1,13 +1,20 @@
-"""One way to turn user config (None, a mapping, an OmegaConf node or the model itself) into a
+"""The strict base of every config model, and one way to turn user config (None, a mapping, an OmegaConf node or the model itself) into a
 validated pydantic model, with an error that names every offending field (STYLE.md rule 6)."""
 
 from __future__ import annotations
 
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 M = TypeVar("M", bound=BaseModel)
+
+
+class StrictModel(BaseModel):
+    """The base of every config model: unknown keys, NaN/inf and wrong types are errors, and a
+    validated config is immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
 
 def parse_model(model: type[M], cfg: Any, *, prefix: str, title: str, **overrides: Any) -> M:

@@ -6,18 +6,15 @@ from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 from tensordict import TensorDictBase
 
-from uavlae.validation import parse_model
+from uavlae.validation import StrictModel, parse_model
 
 C = TypeVar("C", bound=BaseModel)
 
 
-class StrictConfig(BaseModel):
-    """Unknown keys, NaN/inf and wrong types are errors (STYLE.md rule 6)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+StrictConfig = StrictModel  # the learners' configs share the project's strict base
 
 
 def parse_config(model: type[C], cfg: Any = None, **overrides: Any) -> C:

@@ -56,8 +56,8 @@ class SACConfig(StrictConfig):
     # fused: SACLoss's gradients written out by hand (sac_fused.py; same maths, tested against
     # autograd through SACLoss); torchrl: SACLoss's forward and autograd (the reference).
     loss_impl: Literal["fused", "torchrl"] = "fused"
-    # torch.compile SACLoss (loss_impl torchrl only): ~1.9x its eager updates/s after a one-off
-    # ~10-25 s compile, still slower than the eager fused update (benchmarks/sac_update_speed.md).
+    # torch.compile SACLoss (loss_impl torchrl only), after a one-off compile; the eager fused
+    # update stays faster (docs/performance.md).
     compile: bool = False
     compile_simdlen: int | None = Field(128, gt=0)  # inductor CPU vector bits; see compile_loss
     # Read by the collector / training loop, not by update():
@@ -71,7 +71,7 @@ class SACConfig(StrictConfig):
         if self.compile and self.loss_impl != "torchrl":
             raise ValueError(
                 "algo.compile compiles torchrl's SACLoss and needs algo.loss_impl=torchrl; the default "
-                "fused update is faster uncompiled (benchmarks/sac_update_speed.md)"
+                "fused update is faster uncompiled (docs/performance.md)"
             )
         return self
 
@@ -87,10 +87,9 @@ _GROUPS = ("actor", "critic", "alpha")  # the Adam parameter groups, in this ord
 def compile_loss(loss: SACLoss, simdlen: int | None) -> Any:
     """``torch.compile`` of the loss forward (and with it its backward).
 
-    ``simdlen``: inductor's CPU vector width in bits. The backward keeps each ReLU's mask as a
-    bool tensor, and inductor's 256-bit (AVX2) kernels storing one ran at ~0.4 ms per 2x256x64
-    mask on the dev VM's EPYC (eager PyTorch: ~0.06 ms); 128-bit vectors made the compiled update
-    ~15% faster there (benchmarks/sac_update_speed.md). None: inductor's choice for the CPU."""
+    ``simdlen``: inductor's CPU vector width in bits (a public ``torch.compile`` option). The
+    backward keeps each ReLU's mask as a bool tensor, which inductor's 256-bit kernels store
+    slowly on some CPUs; 128 avoids that (docs/performance.md). None: inductor's choice."""
     options = None if simdlen is None else {"cpp.simdlen": simdlen}
     return torch.compile(loss, options=options)
 

@@ -5,7 +5,7 @@ observations (no grad) and on the observations, the target Q nets on (next obs, 
 and the Q nets twice on the observations: with the replayed action (critic loss) and with the
 fresh action and detached parameters (actor loss); autograd then walks all of it back. Each pass
 goes through TensorDict modules, ``vmap`` and distribution objects; on one CPU core that
-bookkeeping costs more than the ~85 MFLOP of the update itself (benchmarks/sac_update_speed.md).
+bookkeeping costs more than the arithmetic of the update itself (docs/performance.md).
 
 :class:`FusedSACGrad` returns the same losses and the same gradients for the same parameter
 tensors, which it reads from the ``SACLoss`` (the loss keeps owning them, so the optimiser,

@@ -10,18 +10,14 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from uavlae.validation import parse_model
+from uavlae.validation import StrictModel, parse_model
 
 Rect = tuple[float, float, float, float]  # (x0, y0, x1, y1): south-west and north-east corners
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
-
-
-class AreaConfig(_Strict):
+class AreaConfig(StrictModel):
     x_size: float = Field(500.0, gt=0)
     y_size: float = Field(500.0, gt=0)
     altitude: float = Field(10.0, ge=0)  # [decision] H, unstated in the paper
@@ -60,7 +56,7 @@ class AreaConfig(_Strict):
         return math.hypot(self.x_size, self.y_size)
 
 
-class CountRange(_Strict):
+class CountRange(StrictModel):
     """An entity count drawn uniformly in {min..max}, padded to ``pad`` (default: max)."""
 
     min: int = Field(ge=0)
@@ -80,7 +76,7 @@ class CountRange(_Strict):
         return self.pad if self.pad is not None else self.max
 
 
-class ZonesConfig(_Strict):
+class ZonesConfig(StrictModel):
     side_min: float = Field(50.0, gt=0)
     side_max: float = Field(200.0, gt=0)
     n_nfz: CountRange = CountRange(min=1, max=3)
@@ -94,7 +90,7 @@ class ZonesConfig(_Strict):
         return self
 
 
-class GEConfig(_Strict):
+class GEConfig(StrictModel):
     count: CountRange = CountRange(min=11, max=15)
     data_min: float = Field(1.0, gt=0)  # DV, Table 3
     data_max: float = Field(3.0, gt=0)
@@ -107,13 +103,13 @@ class GEConfig(_Strict):
         return self
 
 
-class OUConfig(_Strict):
+class OUConfig(StrictModel):
     count: CountRange = CountRange(min=3, max=7)
     p_turn: float = Field(0.05, ge=0, le=1)  # [decision] per-slot chance of a new speed and heading
     heading_tries: int = Field(4, ge=1, le=64)  # redraws before an OU hovers instead
 
 
-class MotionConfig(_Strict):
+class MotionConfig(StrictModel):
     t_fly: float = Field(1.0, gt=0)
     t_hover: float = Field(1.0, ge=0)
     v_max: float = Field(10.0, gt=0)
@@ -127,13 +123,13 @@ class MotionConfig(_Strict):
         return self
 
 
-class ChannelConfig(_Strict):
+class ChannelConfig(StrictModel):
     alpha: float = Field(0.36, gt=0)  # [decision] gain at 1 m
     noise: float = Field(1e-6, gt=0)
     snr_threshold: float = Field(3.6, ge=0)  # tau
 
 
-class EnergyConfig(_Strict):
+class EnergyConfig(StrictModel):
     """Rotary-wing propulsion model, Zeng, Xu, Zhang 2019."""
 
     delta: float = Field(0.012, gt=0)
@@ -165,7 +161,7 @@ class EnergyConfig(_Strict):
         return (1 + self.k) * self.weight**1.5 / math.sqrt(2 * self.rho * self.rotor_area)
 
 
-class SafetyConfig(_Strict):
+class SafetyConfig(StrictModel):
     d_min: float = Field(5.0, ge=0)
     d_safe: float = Field(15.0, gt=0)
     r_coll: float = Field(1.0, ge=0)  # [decision] OU collision radius
@@ -178,7 +174,7 @@ class SafetyConfig(_Strict):
         return self
 
 
-class RewardConfig(_Strict):
+class RewardConfig(StrictModel):
     sigma: tuple[float, float, float, float, float, float, float, float, float] = (
         8.0, 0.4, 0.4, 0.4, 0.6, 0.4, 0.6, 1.0, 0.01,
     )
@@ -218,7 +214,7 @@ class RewardConfig(_Strict):
         return s
 
 
-class CostConfig(_Strict):
+class CostConfig(StrictModel):
     """CPO cost c_t: weighted sum of event indicators (SPEC §7)."""
 
     boundary_exit: float = Field(1.0, ge=0)
@@ -227,7 +223,7 @@ class CostConfig(_Strict):
     nfz_entry: float = Field(1.0, ge=0)
 
 
-class SamplingConfig(_Strict):
+class SamplingConfig(StrictModel):
     grid_cell: float = Field(5.0, gt=0, le=5.0)  # occupancy grid for the connectivity check
     rect_tries: int = Field(200, ge=1)  # placements tried per rectangle
     point_tries: int = Field(200, ge=1)  # placements tried per GE / OU
@@ -237,7 +233,7 @@ class SamplingConfig(_Strict):
     pool_size: int = Field(256, ge=0)
 
 
-class EnvConfig(_Strict):
+class EnvConfig(StrictModel):
     area: AreaConfig = AreaConfig()
     zones: ZonesConfig = ZonesConfig()
     ge: GEConfig = GEConfig()

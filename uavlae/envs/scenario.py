@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,6 +34,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 from uavlae.envs.config import EnvConfig
+from uavlae.files import dump_json
 
 __all__ = [
     "SCENARIO_KEYS",
@@ -697,7 +697,7 @@ class Scenario:
         return cls(**kw)
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
-        _write_json_atomic(path, self.to_dict())
+        dump_json(path, self.to_dict(), indent=None, allow_nan=False)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> "Scenario":
@@ -714,22 +714,6 @@ def _read_json(path: str | os.PathLike[str]) -> Any:
 
 def _reject_constant(name: str) -> float:
     raise ValueError(f"non-finite number {name} in scenario JSON")
-
-
-def _write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
-    # write beside the target, then rename over it: readers never see a half-written file
-    path = os.fspath(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=os.path.dirname(os.path.abspath(path)))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, allow_nan=False)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def stack_scenarios(scenarios: Sequence[Scenario], cfg: EnvConfig, device: torch.device | str | None = None) -> TensorDict:
@@ -805,7 +789,7 @@ def unstack_scenarios(td: TensorDictBase) -> list[Scenario]:
 
 def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) -> None:
     """Write a list of scenarios (an evaluation set) as one JSON list, atomically."""
-    _write_json_atomic(path, [sc.to_dict() for sc in scenarios])
+    dump_json(path, [sc.to_dict() for sc in scenarios], indent=None, allow_nan=False)
 
 
 def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:

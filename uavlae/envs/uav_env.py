@@ -17,21 +17,17 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from uavlae.envs.config import EnvConfig, make_env_config
-from uavlae.envs.geodesic import grid_shape
 from uavlae.envs.scenario import Scenario, sample_scenarios, stack_scenarios
 from uavlae.envs.world import (
     EVENT_KEYS,
     REWARD_KEYS,
-    GEO_KEY,
     ObservationLayout,
     draw_noise,
     initial_state,
     state_keys,
+    state_shapes,
     world_step_core,
 )
-
-_BOOL_STATE = {"nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"}
-_INT_STATE = {"step", "served_ge"}
 
 
 class UAVEnv(EnvBase):
@@ -107,8 +103,6 @@ class UAVEnv(EnvBase):
     def _make_specs(self) -> None:
         b = self.batch_size
         B = b[0]
-        g, k = self.layout.n_ge, self.layout.n_ou
-        n_nfz, n_rz, n_bz = self.layout.n_zone
         f = torch.float32
 
         def u(*shape, dtype=f):
@@ -117,27 +111,9 @@ class UAVEnv(EnvBase):
         def flag(*shape):
             return Categorical(2, shape=(B, *shape), dtype=torch.bool, device=self.device)
 
-        shapes: dict[str, tuple[int, ...]] = {
-            "nfz": (n_nfz, 4), "nfz_mask": (n_nfz,), "rz": (n_rz, 4), "rz_mask": (n_rz,),
-            "bz": (n_bz, 4), "bz_mask": (n_bz,), "ge_pos": (g, 2), "ge_mask": (g,),
-            "takeoff": (4,), "landing": (4,), "data_total": (), "position": (2,), "velocity": (2,),
-            "energy_used": (), "energy_left": (), "slot_data": (), "data_collected": (),
-            "step": (), "ge_remaining": (g,), "ou_pos": (k, 2), "ou_vel": (k, 2),
-            "ou_mask": (k,), "served_ge": (), "d_bz": (), "d_nfz": (), "d_rz": (), "d_ou": (),
-            "d_boundary": (), "d_la": (),
-        }
-        if GEO_KEY in self.raw_state_keys:
-            h, w = grid_shape(self.cfg)
-            shapes[GEO_KEY] = (g + 1, h * w)
-        assert set(shapes) == set(self.raw_state_keys)
         state = {}
-        for key in self.raw_state_keys:
-            if key in _BOOL_STATE:
-                state[key] = flag(*shapes[key])
-            elif key in _INT_STATE:
-                state[key] = u(*shapes[key], dtype=torch.int64)
-            else:
-                state[key] = u(*shapes[key])
+        for key, (shape, dtype) in state_shapes(self.cfg).items():
+            state[key] = flag(*shape) if dtype == torch.bool else u(*shape, dtype=dtype)
         self.observation_spec = Composite(
             observation=u(self.layout.size),
             state=Composite(state, shape=b, device=self.device),
@@ -283,7 +259,7 @@ class UAVEnv(EnvBase):
     def _core_inputs(self, tensordict: TensorDictBase) -> tuple[dict, torch.Tensor, dict]:
         """What the step's core takes for this root: its raw state, its action and the slot's
         random draws (which advance the env's generator)."""
-        st = dict(tensordict.get("state").items())  # one pass: TensorDict.get costs ~1.5 us a key
+        st = dict(tensordict.get("state").items())
         missing = [k for k in self.raw_state_keys if k not in st]
         if missing:
             raise KeyError(f"UAVEnv.step: the input has no ('state', key) for {missing}: "

@@ -15,17 +15,47 @@ from uavlae.envs import geodesic as geo
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
 
-STATIC_KEYS = (
-    "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask",
-    "ge_pos", "ge_mask", "takeoff", "landing", "data_total",
+# The raw state, one row per entry: its shape after the batch dimension B (in the padded sizes
+# G GEs, K OUs, NFZ / RZ / BZ zones of each kind, H·W geodesic grid cells), its dtype, whether it
+# is fixed for the episode, and what it holds. The env's specs, the step's key lists and
+# docs/env_contract.md (tests/test_env.py checks it) all come from this table.
+STATE_TABLE: tuple[tuple[str, tuple[int | str, ...], torch.dtype, bool, str], ...] = (
+    ("nfz", ("NFZ", 4), torch.float32, True, "no-fly zones, (x0, y0, x1, y1)"),
+    ("nfz_mask", ("NFZ",), torch.bool, True, "present no-fly zones"),
+    ("rz", ("RZ", 4), torch.float32, True, "residential zones"),
+    ("rz_mask", ("RZ",), torch.bool, True, "present residential zones"),
+    ("bz", ("BZ", 4), torch.float32, True, "building zones"),
+    ("bz_mask", ("BZ",), torch.bool, True, "present building zones"),
+    ("ge_pos", ("G", 2), torch.float32, True, "GE positions"),
+    ("ge_mask", ("G",), torch.bool, True, "present GEs"),
+    ("takeoff", (4,), torch.float32, True, "TA rectangle"),
+    ("landing", (4,), torch.float32, True, "LA rectangle"),
+    ("data_total", (), torch.float32, True, "data volume of all GEs at the start"),
+    ("position", (2,), torch.float32, False, "DCU position"),
+    ("velocity", (2,), torch.float32, False, "DCU velocity in the last slot"),
+    ("energy_used", (), torch.float32, False, "cumulative energy, J"),
+    ("energy_left", (), torch.float32, False, "E_limit - energy_used"),
+    ("slot_data", (), torch.float32, False, "data collected in the last slot"),
+    ("data_collected", (), torch.float32, False, "data collected so far"),
+    ("step", (), torch.int64, False, "slots since the reset"),
+    ("ge_remaining", ("G",), torch.float32, False, "data left at each GE"),
+    ("ou_pos", ("K", 2), torch.float32, False, "OU positions"),
+    ("ou_vel", ("K", 2), torch.float32, False, "OU velocities"),
+    ("ou_mask", ("K",), torch.bool, False, "present OUs"),
+    ("served_ge", (), torch.int64, False, "GE served in the last slot, -1 none"),
+    ("d_bz", (), torch.float32, False, "distance to the nearest BZ (0 inside, +inf when none)"),
+    ("d_nfz", (), torch.float32, False, "distance to the nearest NFZ"),
+    ("d_rz", (), torch.float32, False, "distance to the nearest RZ"),
+    ("d_ou", (), torch.float32, False, "distance to the nearest OU"),
+    ("d_boundary", (), torch.float32, False, "distance to the area boundary (0 outside)"),
+    ("d_la", (), torch.float32, False, "distance to LA (0 inside)"),
 )
-DYNAMIC_KEYS = (
-    "position", "velocity", "energy_used", "energy_left", "slot_data", "data_collected",
-    "step", "ge_remaining", "ou_pos", "ou_vel", "ou_mask", "served_ge",
-    "d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la",
-)
+GEO_KEY = "geo_field"  # only when uses_geodesic(cfg)
+GEO_ROW = (GEO_KEY, ("G+1", "H·W"), torch.float32, True,
+           "distance fields to LA and each GE, with reward.progress_metric: geodesic")
+STATIC_KEYS = tuple(row[0] for row in STATE_TABLE if row[3])
+DYNAMIC_KEYS = tuple(row[0] for row in STATE_TABLE if not row[3])
 STATE_KEYS = STATIC_KEYS + DYNAMIC_KEYS
-GEO_KEY = "geo_field"  # [B, G + 1, H·W], only with reward.progress_metric = geodesic
 
 
 def uses_geodesic(cfg: EnvConfig) -> bool:
@@ -36,6 +66,25 @@ def state_keys(cfg: EnvConfig) -> tuple[str, ...]:
     """The raw state entries of this configuration: ``STATE_KEYS``, plus ``geo_field`` when the
     geodesic progress metric is in use."""
     return STATE_KEYS + ((GEO_KEY,) if uses_geodesic(cfg) else ())
+
+
+def state_shapes(cfg: EnvConfig) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """``{key: (shape after the batch dimension, dtype)}`` of this configuration's raw state."""
+    h, w = geo.grid_shape(cfg)
+    g = cfg.ge.count.padded
+    size = {"G": g, "K": cfg.ou.count.padded, "NFZ": cfg.zones.n_nfz.padded, "RZ": cfg.zones.n_rz.padded,
+            "BZ": cfg.zones.n_bz.padded, "G+1": g + 1, "H·W": h * w}
+    rows = {row[0]: row for row in (*STATE_TABLE, GEO_ROW)}
+    return {k: (tuple(size.get(d, d) for d in rows[k][1]), rows[k][2]) for k in state_keys(cfg)}
+
+
+def state_table_markdown() -> str:
+    """The raw state as the Markdown table of ``docs/env_contract.md``."""
+    lines = ["| key | shape | dtype | fixed per episode | holds |", "|---|---|---|---|---|"]
+    for key, shape, dtype, static, what in (*STATE_TABLE, GEO_ROW):
+        dims = ", ".join(["B", *map(str, shape)])
+        lines.append(f"| `{key}` | `[{dims}]` | {str(dtype).removeprefix('torch.')} | {'yes' if static else 'no'} | {what} |")
+    return "\n".join(lines)
 
 
 EVENT_KEYS = (

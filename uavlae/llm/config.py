@@ -8,7 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
+
+from uavlae.validation import StrictModel
 
 ResponseFormat = Literal["json_schema", "json_object", "grammar", "none"]
 CacheMode = Literal["off", "read_write", "replay_only"]
@@ -18,11 +20,7 @@ Fallback = Literal["end_episode", "policy", "heuristic"]
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
-
-
-class ServerConfig(_Strict):
+class ServerConfig(StrictModel):
     """The local llama.cpp server (xllamacpp) started on 127.0.0.1 when ``autostart`` is set."""
 
     autostart: bool = True  # used only when base_url is None
@@ -33,7 +31,7 @@ class ServerConfig(_Strict):
     startup_timeout_s: float = Field(120.0, gt=0)
 
 
-class LLMConfig(_Strict):
+class LLMConfig(StrictModel):
     base_url: str | None = None  # ".../v1"; None with server.autostart: the local server's URL
     model: str = "smollm2-135m-instruct"
     api_key_env: str | None = None  # NAME of the env var holding the key; never the key

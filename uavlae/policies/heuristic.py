@@ -15,10 +15,9 @@ Decision, per slot:
    are those corners (at a normal and a tight clearance), the GEs and the LA centre. Its
    all-pairs distances depend only on the scenario and are cached per batch row (Floyd-Warshall,
    rebuilt only for rows whose map changed). Each slot only the DCU's own edges are tested.
-   [decision] An occupancy-grid distance field was the first design; a 3x3 min-pool relaxation
-   on a 5 m grid costs 23 ms per iteration at B=64 on one CPU thread (550 ms at B=1024), and a
-   field needs ~150-250 iterations, so it cannot run per target change in rollouts. The
-   visibility graph is exact for rectangles and costs a few ms per slot at B=1024.
+   [decision] Not an occupancy-grid distance field: it needs ~150-250 relaxation passes per
+   target change, too many to run inside rollouts, and it is only approximate; the visibility
+   graph is exact for rectangles.
 2. Target: the GE with data nearest by path length among those the DCU can still afford (energy
    and time to get there, collect and return to LA, with safety factors); none left → LA.
 3. Desired velocity: toward the next waypoint at v_max, shortened so the step ends on the
@@ -37,14 +36,14 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
-from uavlae.validation import parse_model
+from uavlae.validation import StrictModel, parse_model
 
 # raw state entries the heuristic reads (docs/env_contract.md)
 STATE_IN_KEYS = (
@@ -54,10 +53,8 @@ STATE_IN_KEYS = (
 _EPS = 1e-3  # metres: keeps a point strictly outside the rectangle it is measured from
 
 
-class HeuristicConfig(BaseModel):
+class HeuristicConfig(StrictModel):
     """Numbers of the greedy heuristic; ``conf/advisor/heuristic.yaml`` mirrors it one-to-one."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
     clearance: float = Field(8.0, gt=0)  # planned paths keep this far from BZ/NFZ (must be > d_min)
     tight_clearance: float = Field(2.5, gt=0)  # fallback clearance through gaps the normal one closes
@@ -107,28 +104,6 @@ def _inflate(rects: Tensor, margin: Tensor) -> Tensor:
     m = margin.unsqueeze(-1)
     sign = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=rects.dtype, device=rects.device)
     return rects + m * sign
-
-
-def _seg_hits(p0: Tensor, p1: Tensor, rects: Tensor, margin: Tensor, mask: Tensor) -> Tensor:
-    """True where the segment p0 -> p1 meets any closed rectangle inflated by ``margin``.
-
-    The planner's test, run on [B, nodes, P] every slot, so it is the lean separating-axis form:
-    the segment misses the box iff their bounding boxes are apart on x or y, or all four corners
-    lie strictly on one side of the segment's line (normal n = (y_a - y_b, x_b - x_a)).
-    """
-    x0, y0 = rects[..., 0] - margin, rects[..., 1] - margin
-    x1, y1 = rects[..., 2] + margin, rects[..., 3] + margin
-    ax, ay, bx, by = p0[..., 0:1], p0[..., 1:2], p1[..., 0:1], p1[..., 1:2]
-    box = (
-        (torch.maximum(ax, bx) >= x0) & (torch.minimum(ax, bx) <= x1)
-        & (torch.maximum(ay, by) >= y0) & (torch.minimum(ay, by) <= y1)
-    )
-    nx, ny = ay - by, bx - ax
-    c = nx * ax + ny * ay
-    ex, fx, ey, fy = nx * x0, nx * x1, ny * y0, ny * y1
-    lo = torch.minimum(ex, fx) + torch.minimum(ey, fy)
-    hi = torch.maximum(ex, fx) + torch.maximum(ey, fy)
-    return (box & (lo <= c) & (c <= hi) & mask).any(-1)
 
 
 def _blocked(p0: Tensor, p1: Tensor, rects: Tensor, margin: Tensor, mask: Tensor) -> Tensor:
@@ -237,7 +212,7 @@ class HeuristicPolicy(TensorDictModuleBase):
             i, j = ii[sel], jj[sel]
             mg = torch.minimum(margin[:, li, i], margin[:, li, j])  # [n, M_level, P]
             f = torch.zeros_like(length, dtype=torch.bool)
-            f[:, sel] = ~_seg_hits(nodes[:, i], nodes[:, j], rects.unsqueeze(1), mg, rmask.unsqueeze(1))
+            f[:, sel] = ~_blocked(nodes[:, i], nodes[:, j], rects.unsqueeze(1), mg, rmask.unsqueeze(1))
             free.append(f)
         inf = torch.full_like(length, math.inf)
         wp = torch.where(free[0], length, torch.where(free[1], length * c.tight_cost, inf))
@@ -389,9 +364,9 @@ class HeuristicPolicy(TensorDictModuleBase):
         mp = self._point_margins(p.unsqueeze(-2), rects, rmask)  # [B, 2, 1, P]
         mg = torch.minimum(mp, g["margin"])  # [B, 2, N, P]
         pp, rr, mm = p.unsqueeze(-2), rects.unsqueeze(1), rmask.unsqueeze(1)
-        hit0 = _seg_hits(pp, nodes[:, :n0], rr, mg[:, 0, :n0], mm)
+        hit0 = _blocked(pp, nodes[:, :n0], rr, mg[:, 0, :n0], mm)
         use = N if bool(node_ok[:, n0:].any()) else n0  # tight corners exist only on maps that need them
-        hit1 = _seg_hits(pp, nodes[:, :use], rr, mg[:, 1, :use], mm)
+        hit1 = _blocked(pp, nodes[:, :use], rr, mg[:, 1, :use], mm)
         hit1 = torch.cat([hit1, torch.ones_like(hit0[:, : N - use])], dim=-1)
         free0 = torch.cat([~hit0, torch.zeros_like(hit1[:, n0:])], dim=-1)
         d_pn = torch.linalg.vector_norm(nodes - p.unsqueeze(-2), dim=-1)  # [B, N]

@@ -1,0 +1,56 @@
+"""Files written atomically: a temporary file beside the target, flushed to disk, then renamed
+over it, so that a reader (or a run interrupted half-way) never sees a half-written file."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = ["atomic_write", "dump_json"]
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any], *, previous: str | os.PathLike[str] | None = None) -> Path:
+    """Call ``write(fh)`` on a binary file that becomes ``path`` only once it is complete.
+    ``previous``: an existing ``path`` is first renamed to it (a one-deep backup). The parent
+    folders are created. Returns ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if previous is not None and path.exists():
+            os.replace(path, previous)  # from here until the next line only the backup exists
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def dump_json(path: str | os.PathLike[str], obj: Any, *, indent: int | None = 1, allow_nan: bool = True) -> Path:
+    """``obj`` as JSON in ``path``, atomically (objects JSON does not know are written as ``str``)."""
+    text = json.dumps(obj, indent=indent, allow_nan=allow_nan, default=str)
+    return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def _fsync_dir(d: Path) -> None:
+    """Make the rename itself durable (where the platform allows opening a folder)."""
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:  # pragma: no cover
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
