@@ -1,6 +1,6 @@
 """``wang`` (entity transformer + RND) against ``ppo`` (2x64 MLP) at an equal frame budget.
 
-    python benchmarks/wang_vs_ppo.py            # writes benchmarks/wang_vs_ppo.json
+    python benchmarks/wang_vs_ppo.py --frames 8192   # make bench-wang; writes benchmarks/wang_vs_ppo.json
 
 Each method is one ``python -m uavlae.train +exp=METHOD`` subprocess, one after the other, with
 the same seed, world, frame budget and evaluation set (the paper table's 32 scenarios). Reported
@@ -27,7 +27,8 @@ from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import load_scenarios
 from uavlae.evaluate import Evaluator
-from uavlae.factories import CONF_DIR, dump_json
+from uavlae.factories import CONF_DIR
+from uavlae.files import dump_json
 from uavlae.machine import describe_machine
 
 ROOT = Path(__file__).resolve().parents[1]

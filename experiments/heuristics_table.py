@@ -1,6 +1,6 @@
 """The paper's greedy heuristic against the global planner beyond the paper, on the same scenarios.
 
-    python experiments/heuristics_table.py          # writes results/heuristics_table.{json,md}
+    python experiments/heuristics_table.py          # make heuristics-table; writes results/heuristics_table.{json,md}
 
 Each (method, evaluation set) is one ``python -m uavlae.train +exp=METHOD`` subprocess (the
 evaluation-only controllers: no training) with ``trainer.eval_set`` pointing at the set:
@@ -29,7 +29,7 @@ import torch
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.factories import dump_json
+from uavlae.files import atomic_write, dump_json
 from uavlae.machine import describe_machine
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,10 +98,8 @@ def main() -> None:
             + f" | {r['wall_s']} |"
         )
     lines += ["", "BZ, NFZ, OU: the share of episodes that ended in that collision (their sum is CR)."]
-    md = RESULTS / "heuristics_table.md"
-    tmp = md.with_name(f".{md.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(md)
+    text = ("\n".join(lines) + "\n").encode()
+    atomic_write(RESULTS / "heuristics_table.md", lambda fh: fh.write(text))
 
 
 if __name__ == "__main__":

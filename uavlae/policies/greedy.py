@@ -48,14 +48,14 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
-from uavlae.validation import parse_model
+from uavlae.validation import StrictModel, parse_model
 
 STATE_IN_KEYS = (
     "position", "energy_left", "step", "ge_pos", "ge_remaining", "ge_mask", "ou_pos", "ou_vel",
@@ -64,10 +64,8 @@ STATE_IN_KEYS = (
 _EPS = 1e-3  # metres: a point already nearer an obstacle than the clearance may not get nearer
 
 
-class GreedyConfig(BaseModel):
+class GreedyConfig(StrictModel):
     """Numbers of the greedy heuristic; ``conf/advisor/greedy.yaml`` mirrors it one-to-one."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
     clearance: float = Field(8.0, ge=0)  # m: the step's segment keeps this far from BZ/NFZ
     boundary_margin: float = Field(1.0, ge=0)  # m: every step ends this far inside the area
