@@ -85,6 +85,16 @@ bench-advice: $(STAMP)
 	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_no_safety llm_no_compliance llm_no_data \
 		llm_no_energy
 
+# Training frames/s and metrics of +exp=wang beside +exp=ppo at one frame budget -> benchmarks/wang_vs_ppo.json
+.PHONY: bench-wang
+bench-wang: $(STAMP)
+	$(BIN)/python benchmarks/wang_vs_ppo.py --frames 8192
+
+# The greedy heuristic and the planner on the same 32 and 256 scenarios -> results/heuristics_table.{json,md}
+.PHONY: heuristics-table
+heuristics-table: $(STAMP)
+	$(BIN)/python experiments/heuristics_table.py
+
 # What copying the ego direction column earns with no learning -> benchmarks/follow_direction.json
 .PHONY: bench-follow
 bench-follow: $(STAMP)

@@ -19,6 +19,7 @@ from uavlae.algos.ppo import PPOConfig, make_ppo, make_ppo_config
 from uavlae.algos.ppo_lagrangian import (
     CPOConfig,
     LagrangeMultiplier,
+    gaussian_kl,
     make_cpo_config,
     make_ppo_lagrangian,
 )
@@ -294,14 +295,125 @@ def test_ppo_lagrangian_update(env, obs_dim):
     before = [params(m) for m in (algo.actor, algo.critic, algo.cost_critic)]
     logs = algo.update(batch)
     assert all_finite(logs)
-    assert {"lambda", "cost_estimate", "cost_limit", "cost_mean_step", "cost_rate", "loss_cost_critic"} <= set(logs)
+    assert {"lambda", "cost_limit", "cost_mean_step", "cost_rate", "loss_cost_critic", "kl", "epochs_run"} <= set(logs)
     assert all(changed(b, m) for b, m in zip(before, (algo.actor, algo.critic, algo.cost_critic)))
-    # the multiplier took one dual-ascent step on the measured violation
-    assert logs["lambda"] == pytest.approx(max(0.0, 0.1 * (logs["cost_estimate"] - 0.05)))
+    # the multiplier took one dual-ascent step on the episodes that ended in the batch (if any)
+    if logs["episodes_measured"] > 0:
+        assert logs["lambda"] == pytest.approx(max(0.0, 0.1 * (logs["episode_cost"] - 0.05)))
+    else:
+        assert logs["lambda"] == 0.0 and "episode_cost" not in logs
+    lam = logs["lambda"]
     logs = algo.update(batch, episode_cost=0.55)
-    assert logs["cost_estimate"] == 0.55 and logs["episode_cost_given"] == 1.0
+    assert logs["episode_cost"] == 0.55 and logs["episode_cost_given"] == 1.0
+    assert logs["lambda"] == pytest.approx(max(0.0, lam + 0.1 * 0.5))
     with pytest.raises(KeyError, match="cost"):
         algo.update(batch.exclude(("next", "cost")))
+
+
+def _hand_batch(obs_dim: int, cost: list[list[float]], done: list[list[bool]], actor) -> TensorDict:
+    """A ``[2, 4]`` on-policy batch with given costs and episode ends; zero reward."""
+    g = torch.Generator().manual_seed(3)
+    b, t = 2, 4
+    td = TensorDict(
+        {
+            "observation": torch.randn(b, t, obs_dim, generator=g),
+            "next": {
+                "observation": torch.randn(b, t, obs_dim, generator=g),
+                "reward": torch.zeros(b, t, 1),
+                "cost": torch.tensor(cost, dtype=torch.float32).unsqueeze(-1),
+                "done": torch.tensor(done).unsqueeze(-1),
+                "terminated": torch.tensor(done).unsqueeze(-1),
+            },
+        },
+        [b, t],
+    )
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        td.update(actor(td.select("observation").copy()).select("action", "action_log_prob"))
+    return td
+
+
+def test_cpo_multiplier_on_discounted_episode_cost(obs_dim):
+    """J_c = mean over the episodes ended in the batch of sum_t gamma_c^t c_t; one dual step.
+
+    gamma_c = 0.5, lr = 0.1, d = 0.05. Batch 1: row 0 costs 1 at t = 1 and ends there
+    (0.5^1 = 0.5); row 1 costs 1 at t = 3 and ends there (0.5^3 = 0.125): J_c = 0.3125,
+    lambda = 0.1 * (0.3125 - 0.05) = 0.02625. Batch 2: row 0's episode began at t = 2 of
+    batch 1, so its cost 1 at t = 0 here is its third step (0.5^2 = 0.25) and it ends; row 1
+    does not end: J_c = 0.25, lambda = 0.02625 + 0.1 * 0.2 = 0.04625. Batch 3: nothing ends, no
+    step. Batch 4: row 1's episode, open for 8 steps without cost, ends with cost 1 at its 9th
+    (0.5^8); row 0 ends a zero-cost episode: J_c = 0.5^8 / 2, lambda = max(0, 0.04625 + 0.1 *
+    (0.001953125 - 0.05)).
+    """
+    spec = Bounded(-torch.ones(2), torch.ones(2), shape=(2,))
+    algo = make_ppo_lagrangian(
+        {"epochs": 1, "minibatch_size": 8, "cost_gamma": 0.5, "lagrange": {"lr": 0.1}, "target_kl": None}, obs_dim, spec
+    )
+    f, T = False, True
+    b1 = _hand_batch(obs_dim, [[0, 1, 0, 0], [0, 0, 0, 1]], [[f, T, f, f], [f, f, f, T]], algo.actor)
+    logs = algo.update(b1)
+    assert logs["episodes_measured"] == 2 and logs["episode_cost"] == pytest.approx(0.3125)
+    assert logs["lambda"] == pytest.approx(0.02625)
+    b2 = _hand_batch(obs_dim, [[1, 0, 0, 0], [0, 0, 0, 0]], [[T, f, f, f], [f, f, f, f]], algo.actor)
+    logs = algo.update(b2)
+    assert logs["episodes_measured"] == 1 and logs["episode_cost"] == pytest.approx(0.25)
+    assert logs["lambda"] == pytest.approx(0.04625)
+    b3 = _hand_batch(obs_dim, [[0, 0, 0, 0], [0, 0, 0, 0]], [[f, f, f, f], [f, f, f, f]], algo.actor)
+    logs = algo.update(b3)
+    assert logs["episodes_measured"] == 0 and logs["lambda"] == pytest.approx(0.04625)
+    # resume mid-episode: the open episodes' running costs travel in the state dict
+    state = copy.deepcopy(algo.state_dict())
+    other = make_ppo_lagrangian(
+        {"epochs": 1, "minibatch_size": 8, "cost_gamma": 0.5, "lagrange": {"lr": 0.1}, "target_kl": None}, obs_dim, spec
+    )
+    other.load_state_dict(state)
+    b4 = _hand_batch(obs_dim, [[0, 0, 0, 0], [1, 0, 0, 0]], [[T, f, f, f], [T, f, f, f]], algo.actor)
+    expected = max(0.0, 0.04625 + 0.1 * (0.5**8 / 2 - 0.05))
+    for learner in (algo, other):
+        logs = learner.update(b4.clone())
+        assert logs["episode_cost"] == pytest.approx(0.5**8 / 2) and logs["lambda"] == pytest.approx(expected)
+
+
+def test_gaussian_kl_hand_computed():
+    # KL(N(0,1) || N(1,2)) = ln 2 + (1 + 1) / (2 * 4) - 1/2 = 0.693147 + 0.25 - 0.5 per dimension
+    kl = gaussian_kl(torch.zeros(3, 2), torch.ones(3, 2), torch.ones(3, 2), 2 * torch.ones(3, 2))
+    assert torch.allclose(kl, torch.full((3,), 2 * (math.log(2) - 0.25)))
+    assert float(gaussian_kl(torch.ones(2), torch.ones(2), torch.ones(2), torch.ones(2))) == 0.0
+
+
+def test_cpo_kl_early_stop(obs_dim):
+    """The update stops before the minibatch step that would start from a mean KL above
+    target_kl; without a target it runs every epoch.
+
+    Batch of 8 steps, minibatches of 2: 4 steps an epoch, 5 epochs = 20 steps at most. Before
+    the first step the KL is 0, so one step is always taken.
+    """
+    spec = Bounded(-torch.ones(2), torch.ones(2), shape=(2,))
+    base = {"epochs": 5, "minibatch_size": 2, "actor_lr": 1e-2, "lagrange": {"lr": 0.1}}
+    f = False
+    runs = {}
+    for target in (None, 1e-9, 1e3):
+        torch.manual_seed(0)
+        algo = make_ppo_lagrangian({**base, "target_kl": target}, obs_dim, spec)
+        batch = _hand_batch(obs_dim, [[0, 0, 0, 0], [0, 0, 0, 0]], [[f] * 4, [f] * 4], algo.actor)
+        batch["next", "reward"] = torch.arange(8.0).reshape(2, 4, 1)  # a non-zero advantage
+        flat_obs = batch.select("observation").reshape(-1)
+        with torch.no_grad():
+            old = algo.actor.get_dist(flat_obs.copy())
+            old_loc, old_scale = old.loc.clone(), old.scale.clone()
+        logs = algo.update(batch)
+        # the logged KL is the mean KL of the final policy, computed here from its parameters
+        with torch.no_grad():
+            new = algo.actor.get_dist(flat_obs.copy())
+            kl = float(gaussian_kl(old_loc, old_scale, new.loc, new.scale).mean())
+        assert logs["kl"] == pytest.approx(kl, rel=1e-6)
+        runs[target] = logs
+    assert runs[None]["gradient_steps"] == 20 and runs[None]["epochs_run"] == 5 and runs[None]["kl_stopped"] == 0
+    assert runs[1e3]["gradient_steps"] == 20 and runs[1e3]["kl_stopped"] == 0
+    # any step moves the policy above 1e-9: the second step is refused, the epochs end
+    assert runs[1e-9]["gradient_steps"] == 1 and runs[1e-9]["epochs_run"] == 0.25 and runs[1e-9]["kl_stopped"] == 1
+    assert runs[1e-9]["kl"] > 1e-9
+    # the config's default is the paper's 0.01
+    assert make_cpo_config().target_kl == 0.01
 
 
 def test_lagrangian_advantage_form(env, obs_dim):

@@ -32,11 +32,15 @@ def test_exp_composes_and_validates(hydra_ctx, exp):
     assert OmegaConf.is_struct(cfg)
     assert cfg.name == exp
     validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
-    if exp in ("heuristic", "llm", "random"):
-        assert cfg.controller == exp and "algo" not in cfg
+    if exp in ("heuristic", "llm", "random", "heuristic_planner"):
+        assert cfg.controller == exp.removesuffix("_planner") and "algo" not in cfg
     else:
         assert cfg.controller == "learner"
-    expected_advisor = {"sac_llm": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "llm": "llm"}
+    # the paper's greedy heuristic wherever one acts, the planner only under its own names
+    assert cfg.heuristic_kind == ("planner" if exp.endswith("_planner") else "greedy")
+    expected_advisor = {
+        "sac_llm": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "llm": "llm",
+    }
     assert cfg.advisor.kind == expected_advisor.get(exp, "none")
     # the resolved config never holds an API key, only the variable's name
     assert set(cfg.llm.keys()) & {"api_key"} == set()
@@ -48,7 +52,7 @@ def test_paper_values(hydra_ctx):
     assert cfg.algo.actor_lr == 1e-4 and cfg.algo.critic_lr == 3e-4 and list(cfg.algo.hidden) == [64, 64]
     assert _compose("+exp=sac_llm_fp").advisor.fp == 0.3
     assert _compose("+exp=ppo").algo.clip_epsilon == 0.2
-    assert _compose("+exp=cpo").algo.cost_limit == 0.05
+    assert _compose("+exp=cpo").algo.cost_limit == 0.05 and _compose("+exp=cpo").algo.target_kl == 0.01
     # the trainer reads the algo's numbers unless told otherwise
     cfg = _compose("+exp=sac", "algo.utd_ratio=2.0")
     assert cfg.trainer.utd_ratio == 2.0 and cfg.trainer.batch_size == 256

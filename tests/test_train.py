@@ -39,7 +39,7 @@ def _cfg(*overrides: str):
 def _run(exp: str, run_dir: Path, *extra: str) -> dict:
     from uavlae.train import run
 
-    more = ON_POLICY_TINY if exp in ("ppo", "cpo") else []
+    more = ON_POLICY_TINY if exp in ("ppo", "cpo", "wang") else []
     return run(_cfg(f"+exp={exp}", f"run_dir={run_dir}", *TINY, *more, *extra))
 
 
@@ -67,7 +67,7 @@ def _check_run_outputs(run_dir: Path, final: dict, *, trained: bool = True, fram
         assert state["counters"]["frames"] == frames and state["config"]["name"] == cfg_json["name"]
 
 
-@pytest.mark.parametrize("exp", ["sac", "ppo", "ddpg", "cpo", "sac_heuristic"])
+@pytest.mark.parametrize("exp", ["sac", "ppo", "ddpg", "cpo", "wang", "sac_heuristic"])
 def test_exp_trains_end_to_end(tmp_path, exp):
     final = _run(exp, tmp_path / exp)
     _check_run_outputs(tmp_path / exp, final)
@@ -75,7 +75,9 @@ def test_exp_trains_end_to_end(tmp_path, exp):
     steps = _csv_steps(tmp_path / exp, "time/fps")
     assert steps == sorted(steps) and steps[0] == 32
     if exp == "cpo":
-        assert _csv_steps(tmp_path / exp, "train/lambda")
+        assert _csv_steps(tmp_path / exp, "train/lambda") and _csv_steps(tmp_path / exp, "train/kl")
+    if exp == "wang":
+        assert _csv_steps(tmp_path / exp, "train/intrinsic_reward_mean")
     if exp == "sac_heuristic":
         assert _csv_steps(tmp_path / exp, "override/source/heuristic")
     if exp == "sac":
@@ -133,8 +135,9 @@ def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
     assert len(evaluators) == 1 and evaluators[0].env.compiled  # the evaluation env too
 
 
-def test_heuristic_evaluates(tmp_path):
-    final = _run("heuristic", tmp_path / "h", "trainer.eval_max_steps=40")
+@pytest.mark.parametrize("exp", ["heuristic", "heuristic_planner"])
+def test_heuristic_evaluates(tmp_path, exp):
+    final = _run(exp, tmp_path / "h", "trainer.eval_max_steps=40")
     _check_run_outputs(tmp_path / "h", final, trained=False)
     assert final["frames"] == 0 and not (tmp_path / "h" / "checkpoints").exists()
 

@@ -1,7 +1,7 @@
 """A one-minute look at the world: a batched rollout of the greedy heuristic (SPEC §8).
 
 ``python -m uavlae.demo [--batch 64] [--seed 0] [--out outputs] [--max-steps N] [--random]``
-samples ``batch`` scenarios, flies each once with :class:`~uavlae.policies.heuristic.HeuristicPolicy`
+samples ``batch`` scenarios, flies each once with :class:`~uavlae.policies.greedy.GreedyPolicy`
 (or uniform random actions), prints the paper's five metrics (SPEC §5) and writes
 ``OUT/demo_scenario.png`` (one scenario with its trajectory) and ``OUT/demo_records.csv``.
 """
@@ -30,14 +30,14 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_records
     from uavlae.envs.render import draw_scenario
     from uavlae.envs.uav_env import UAVEnv
-    from uavlae.policies.heuristic import HeuristicPolicy
+    from uavlae.policies.greedy import GreedyPolicy
 
     cfg = make_env_config()
     t0 = time.perf_counter()
     env = UAVEnv(cfg, batch_size=[args.batch], seed=args.seed)
     start = env.reset()
     t_reset = time.perf_counter() - t0
-    policy = None if args.random else HeuristicPolicy(cfg)
+    policy = None if args.random else GreedyPolicy(cfg)
     gen = torch.Generator().manual_seed(args.seed)
     records, agg, trajs = rollout_metrics(
         env, policy, max_steps=args.max_steps, generator=gen, cfg=cfg, tensordict=start.clone()

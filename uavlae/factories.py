@@ -143,6 +143,7 @@ class RunConfig(StrictModel):
 
     name: str = Field(min_length=1)
     controller: Literal["learner", "heuristic", "llm", "random"]
+    heuristic_kind: Literal["greedy", "planner"]
     seed: int
     device: str
     threads: int = Field(ge=1)
@@ -172,7 +173,8 @@ def validate_config(cfg: DictConfig) -> None:
     """Validate every group of a composed config; ``ValueError`` names the bad field."""
     root = {k: cfg[k] for k in RunConfig.model_fields}
     run = _validate(RunConfig, root, "config")
-    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "experiment"}
+    known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "greedy",
+                                           "experiment"}
     unknown = sorted(set(cfg.keys()) - known - {"hydra"})
     if unknown:
         raise ValueError(f"unknown top-level config keys {unknown}")
@@ -181,12 +183,14 @@ def validate_config(cfg: DictConfig) -> None:
     make_trainer_config(cfg.trainer)
     make_logger_config(cfg.logger)
     adv = make_advisor_config(cfg.advisor)
+    from uavlae.policies.greedy import make_greedy_config
     from uavlae.policies.heuristic import make_heuristic_config
 
     make_heuristic_config(cfg.heuristic)
+    make_greedy_config(cfg.greedy)
     if run.controller == "learner":
         if cfg.get("algo") is None:
-            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo)")
+            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo|wang)")
         from uavlae.algos import MAKERS
 
         name = cfg.algo.name
@@ -209,8 +213,12 @@ def _algo_config(cfg: Any) -> Any:
     from uavlae.algos.ppo import make_ppo_config
     from uavlae.algos.ppo_lagrangian import make_cpo_config
     from uavlae.algos.sac import make_sac_config
+    from uavlae.algos.wang import make_wang_config
 
-    makers = {"sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config}
+    makers = {
+        "sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config,
+        "wang": make_wang_config,
+    }
     return makers[cfg.name](cfg)
 
 
@@ -240,7 +248,7 @@ def make_env(
 def make_learner(algo_cfg: Any, env: UAVEnv) -> Any:
     """``conf/algo`` -> a learner (``actor``, ``update``, ``state_dict``) sized for ``env``."""
     obs_dim = env.observation_spec["observation"].shape[-1]
-    return _make_learner(algo_cfg, obs_dim, env.action_spec)
+    return _make_learner(algo_cfg, obs_dim, env.action_spec, layout=env.layout)
 
 
 def behaviour_actor(learner: Any) -> Any:
@@ -249,7 +257,13 @@ def behaviour_actor(learner: Any) -> Any:
 
 
 def make_heuristic(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
-    """The ``heuristic`` node -> :class:`uavlae.policies.heuristic.HeuristicPolicy`."""
+    """``heuristic_kind`` -> the paper's greedy controller (:class:`uavlae.policies.greedy.GreedyPolicy`,
+    the ``greedy`` node) or the visibility-graph planner beyond the paper
+    (:class:`uavlae.policies.heuristic.HeuristicPolicy`, the ``heuristic`` node)."""
+    if cfg.heuristic_kind == "greedy":
+        from uavlae.policies.greedy import GreedyPolicy
+
+        return GreedyPolicy(env_cfg, _container(cfg.greedy))
     from uavlae.policies.heuristic import HeuristicPolicy
 
     return HeuristicPolicy(env_cfg, _container(cfg.heuristic))

@@ -2,7 +2,7 @@
 
 Every learner has ``actor`` (the acting policy), ``update(batch) -> dict[str, float]``,
 ``state_dict()`` / ``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample
-``[N]``; on-policy (ppo, cpo): a collector batch ``[*B, T]``, time last.
+``[N]``; on-policy (ppo, cpo, wang): a collector batch ``[*B, T]``, time last.
 """
 
 from __future__ import annotations
@@ -15,18 +15,23 @@ from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
 from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
 from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
 from uavlae.algos.sac import SAC, SACConfig, make_sac
+from uavlae.algos.wang import Wang, WangConfig, make_wang
 
-MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian}
+MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian, "wang": make_wang}
+NEEDS_LAYOUT = frozenset({"wang"})  # cut the observation into entities: need the env's ObservationLayout
 OFF_POLICY = frozenset({"sac", "ddpg"})
 
-Learner = SAC | DDPG | PPO | PPOLagrangian
+Learner = SAC | DDPG | PPO | PPOLagrangian | Wang
 
 
-def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec) -> Learner:
-    """Build the learner named by ``cfg["name"]`` (a conf/algo/*.yaml node or a mapping)."""
+def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec, layout: Any = None) -> Learner:
+    """Build the learner named by ``cfg["name"]`` (a conf/algo/*.yaml node or a mapping);
+    ``layout``: the env's ``ObservationLayout``, read by the learners in ``NEEDS_LAYOUT``."""
     name = cfg.name if hasattr(cfg, "name") else cfg["name"]
     if name not in MAKERS:
         raise ValueError(f"algo.name must be one of {sorted(MAKERS)}, got {name!r}")
+    if name in NEEDS_LAYOUT:
+        return MAKERS[name](cfg, obs_dim, action_spec, layout)
     return MAKERS[name](cfg, obs_dim, action_spec)
 
 
@@ -43,5 +48,7 @@ __all__ = [
     "PPOLagrangian",
     "SAC",
     "SACConfig",
+    "Wang",
+    "WangConfig",
     "make_learner",
 ]

@@ -1,18 +1,25 @@
-"""The paper's "CPO" baseline (§6.3): PPO with a Lagrange multiplier on the cost signal.
+"""The paper's "CPO" baseline (§6.3): PPO-Lagrangian with a KL trust region.
 
-SPEC.md §8 reads CPO as a Lagrangian-constrained PPO with cost limit d = 0.05 on the
-discounted cost J_c = E[sum_t gamma_c^t c_t] (SPEC.md §7: c_t is the weighted sum of boundary
-exit, OU collision, building collision and NFZ entry; the env writes it to ``("next", "cost")``).
+The paper's CPO (after safety-starter-agents) maximises the return subject to a limit d = 0.05
+on the discounted cost J_c = E[sum_t gamma_c^t c_t] of an episode, and keeps each policy update
+inside a trust region of mean KL divergence 0.01. SPEC.md §8 reads it as a Lagrangian-constrained
+PPO (c_t of SPEC.md §7: the weighted sum of boundary exit, OU collision, building collision and
+NFZ entry; the env writes it to ``("next", "cost")``).
 
-One ``update(batch)`` on an on-policy batch ``[*B, T]`` (time last) with PPO's keys
-(:mod:`uavlae.algos.ppo`) plus ``("next", "cost")``:
+One ``update(batch)`` on an on-policy batch ``[*B, T]`` (time last, consecutive batches of the
+same collector continuing each row's episodes) with PPO's keys (:mod:`uavlae.algos.ppo`) plus
+``("next", "cost")`` and ``("next", "done")``:
 
 1. GAE twice with the current critics: reward (``"advantage"``, ``"value_target"``) and cost
    (``"cost_advantage"``, ``"cost_value_target"``; torchrl's GAE with its reward key set to
    ``"cost"`` and its value key to ``"cost_value"``).
-2. The multiplier takes one step on the constraint violation J_c - d (``LagrangeMultiplier``),
-   before the policy update, so the policy is trained with the new lambda.
-3. ``epochs`` x minibatches of: the clipped surrogate on the Lagrangian advantage
+2. J_c is measured on the episodes that end in this batch: ``EpisodeCostTracker`` carries each
+   row's running sum_t gamma_c^t c_t across batches (it is part of the checkpoint) and J_c is
+   the mean over the episodes finished here. The multiplier takes one step on J_c - d
+   (``LagrangeMultiplier``) before the policy update, so the policy is trained with the new
+   lambda; a batch in which no episode ends measures nothing and leaves lambda as it is. An
+   ``episode_cost`` argument, when given, replaces the measurement.
+3. Up to ``epochs`` x minibatches of: the clipped surrogate on the Lagrangian advantage
 
        A_L = (Â_r - lambda * Â_c) / (1 + lambda)
        L_pi = -E[min(rho * A_L, clip(rho, 1 - eps, 1 + eps) * A_L)] - beta_H * H[pi]
@@ -22,16 +29,18 @@ One ``update(batch)`` on an on-policy batch ``[*B, T]`` (time last) with PPO's k
    reward-advantage per unit of cost; dividing by (1 + lambda) keeps the step size bounded as
    lambda grows. Plus the reward critic loss (``ClipPPOLoss``) and the cost critic loss
    ``E[(V_c(s) - cost_value_target)^2]``.
-
-J_c for step 2 is, in order of preference: the ``episode_cost`` argument (the mean discounted
-cost of the episodes finished in this batch, from the training loop's bookkeeping), else the
-mean cost lambda-return ``cost_value_target`` over the batch's episode starts (``"is_init"``,
-torchrl's InitTracker), else over all its steps (the expected discounted cost-to-go from a
-visited state: an upper-biased proxy for episodes whose costly part comes late).
+4. The trust region, by early stopping: before every minibatch step the mean KL(pi_old || pi)
+   over the whole batch is computed exactly (diagonal Gaussians before the tanh, which is a
+   bijection and leaves the KL unchanged); once it exceeds ``target_kl`` the update's remaining
+   steps and epochs are dropped. Early stopping rather than an adaptive KL penalty because the
+   paper states a maximum KL, which a stop enforces up to one minibatch step, while a penalty
+   only holds the KL near its target on average (and adds a coefficient with its own schedule);
+   it is also what CPO's backtracking line search does: reject the step that leaves the region.
 """
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -52,7 +61,7 @@ from uavlae.algos.common import (
     parts_state_dict,
     to_floats,
 )
-from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
+from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss
 from uavlae.policies.networks import make_ppo_actor, make_value_critic
 
 CPO_TRAIN_KEYS = (*PPO_TRAIN_KEYS, "cost_advantage", "cost_value_target", "lagrangian_advantage")
@@ -140,6 +149,7 @@ class CPOConfig(PPOConfig):
     cost_gamma: float = Field(0.99, gt=0, le=1)
     cost_gae_lambda: float = Field(0.95, ge=0, le=1)
     lagrange: LagrangeConfig = LagrangeConfig()
+    target_kl: float | None = Field(0.01, gt=0)  # §6.3: the trust region's maximum mean KL; null: off
 
 
 def make_cpo_config(cfg: Any = None, **overrides: Any) -> CPOConfig:
@@ -148,6 +158,61 @@ def make_cpo_config(cfg: Any = None, **overrides: Any) -> CPOConfig:
 
 def _standardise(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean()) / x.std().clamp_min(1e-6) if x.numel() > 1 else x - x.mean()
+
+
+def gaussian_kl(loc_p: torch.Tensor, scale_p: torch.Tensor, loc_q: torch.Tensor, scale_q: torch.Tensor) -> torch.Tensor:
+    """KL(p || q) of diagonal Gaussians, summed over the last (action) dimension.
+
+    KL = sum_i [ log(s_q / s_p) + (s_p^2 + (m_p - m_q)^2) / (2 s_q^2) - 1/2 ].
+    """
+    kl = torch.log(scale_q / scale_p) + (scale_p.pow(2) + (loc_p - loc_q).pow(2)) / (2 * scale_q.pow(2)) - 0.5
+    return kl.sum(-1)
+
+
+class EpisodeCostTracker:
+    """Each row's discounted episode cost sum_t gamma^t c_t, carried across on-policy batches.
+
+    ``update(cost, done)`` takes one batch ``[*B, T]`` (or ``[*B, T, 1]``) and returns the
+    discounted costs of the episodes that ended in it (``done`` at their last step), in no
+    particular order. A batch whose row count differs from the previous one starts every row
+    afresh (a different collector).
+    """
+
+    def __init__(self, gamma: float):
+        self.gamma = float(gamma)
+        self.acc: torch.Tensor | None = None  # [R] running discounted cost of the open episode
+        self.discount: torch.Tensor | None = None  # [R] gamma^t of the row's next step
+
+    def update(self, cost: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        if cost.shape != done.shape:
+            raise ValueError(f"cost {tuple(cost.shape)} and done {tuple(done.shape)} must have one shape")
+        if cost.shape[-1] == 1 and cost.dim() >= 2:
+            cost, done = cost.squeeze(-1), done.squeeze(-1)
+        cost = cost.reshape(-1, cost.shape[-1]).double()
+        done = done.reshape(-1, done.shape[-1]).bool()
+        rows, steps = cost.shape
+        if self.acc is None or self.acc.shape[0] != rows:
+            self.acc = torch.zeros(rows, dtype=torch.float64)
+            self.discount = torch.ones(rows, dtype=torch.float64)
+        acc, discount = self.acc.clone(), self.discount.clone()
+        finished = []
+        for t in range(steps):
+            acc = acc + discount * cost[:, t]
+            discount = discount * self.gamma
+            ended = done[:, t]
+            finished.append(acc[ended])
+            acc = torch.where(ended, torch.zeros_like(acc), acc)
+            discount = torch.where(ended, torch.ones_like(discount), discount)
+        self.acc, self.discount = acc, discount
+        return torch.cat(finished)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"gamma": self.gamma, "acc": self.acc, "discount": self.discount}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.gamma = float(state["gamma"])
+        self.acc = None if state["acc"] is None else state["acc"].clone()
+        self.discount = None if state["discount"] is None else state["discount"].clone()
 
 
 @dataclass
@@ -162,8 +227,10 @@ class PPOLagrangian:
     gae: GAE
     cost_gae: GAE
     lagrange: LagrangeMultiplier
+    episode_costs: EpisodeCostTracker
     optimisers: dict[str, torch.optim.Optimizer]
     num_updates: int = 0
+    last_cost: float | None = None  # the latest measured J_c (logged while no episode ends)
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self.loss(mb)
@@ -176,38 +243,76 @@ class PPOLagrangian:
         logs.update(norms)
         return logs
 
-    def _cost_estimate(self, batch: TensorDictBase) -> float:
-        target = batch["cost_value_target"]
-        is_init = batch.get("is_init", None)
-        if is_init is not None and bool(is_init.any()):
-            return float(target[is_init.expand_as(target)].mean())
-        return float(target.mean())
+    def _policy_params(self, obs: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        dist = self.actor.get_dist(obs.select("observation").copy())
+        return dist.loc, dist.scale
+
+    def mean_kl(self, flat: TensorDictBase, old_loc: torch.Tensor, old_scale: torch.Tensor) -> float:
+        """Mean over ``flat``'s states of KL(pi_old || pi) for the current actor."""
+        with torch.no_grad():
+            loc, scale = self._policy_params(flat)
+            return float(gaussian_kl(old_loc, old_scale, loc, scale).mean())
+
+    def _epochs_with_kl_stop(self, flat: TensorDictBase) -> dict[str, float]:
+        """``epochs`` passes over shuffled minibatches, stopped once the mean KL passes target_kl."""
+        with torch.no_grad():
+            old_loc, old_scale = self._policy_params(flat)
+        n = flat.shape[0]
+        sums: dict[str, float] = defaultdict(float)
+        steps, stopped, kl = 0, False, 0.0
+        for _ in range(self.cfg.epochs):
+            for idx in torch.randperm(n).split(self.cfg.minibatch_size):
+                if steps > 0 and self.cfg.target_kl is not None:
+                    kl = self.mean_kl(flat, old_loc, old_scale)
+                    if kl > self.cfg.target_kl:
+                        stopped = True
+                        break
+                for k, v in to_floats(self._step(flat[idx])).items():
+                    sums[k] += v
+                steps += 1
+            if stopped:
+                break
+        if not stopped:
+            kl = self.mean_kl(flat, old_loc, old_scale)
+        logs = {k: v / steps for k, v in sums.items()}
+        per_epoch = -(-n // self.cfg.minibatch_size)
+        logs.update({"kl": kl, "kl_stopped": float(stopped), "gradient_steps": float(steps), "epochs_run": steps / per_epoch})
+        return logs
 
     def update(self, batch: TensorDictBase, episode_cost: float | None = None) -> dict[str, float]:
         """One PPO-Lagrangian update on ``[*B, T]`` (module doc: keys, order, exact loss)."""
         _check_on_policy_batch(
-            batch, ("observation", "action", "action_log_prob", ("next", "reward"), ("next", "cost"))
+            batch,
+            ("observation", "action", "action_log_prob", ("next", "reward"), ("next", "cost"), ("next", "done")),
         )
         with torch.no_grad():
             batch = self.gae(batch.copy())
             batch = self.cost_gae(batch)
-            jc = float(episode_cost) if episode_cost is not None else self._cost_estimate(batch)
-            lam = self.lagrange.update(jc, self.cfg.cost_limit)
+            finished = self.episode_costs.update(batch["next", "cost"], batch["next", "done"])
+            if episode_cost is not None:
+                jc: float | None = float(episode_cost)
+            elif finished.numel() > 0:
+                jc = float(finished.mean())
+            else:
+                jc = None
+            if jc is not None:
+                self.lagrange.update(jc, self.cfg.cost_limit)
+                self.last_cost = jc
+            lam = self.lagrange.value
             adv_r = batch["advantage"]
             adv_r = _standardise(adv_r) if self.cfg.normalize_advantage else adv_r
             adv_c = batch["cost_advantage"] - batch["cost_advantage"].mean()
             batch["lagrangian_advantage"] = (adv_r - lam * adv_c) / (1.0 + lam)
         flat = batch.select(*CPO_TRAIN_KEYS).reshape(-1)
-        logs = run_epochs(flat, self.cfg.epochs, self.cfg.minibatch_size, self._step)
+        logs = self._epochs_with_kl_stop(flat)
         self.num_updates += 1
         cost = batch["next", "cost"]
         logs.update(
             to_floats(
                 {
                     "lambda": lam,
-                    "cost_estimate": jc,
+                    "episodes_measured": float(finished.numel()) if episode_cost is None else 0.0,
                     "cost_limit": self.cfg.cost_limit,
-                    "cost_violation": jc - self.cfg.cost_limit,
                     "cost_mean_step": cost.mean(),
                     "cost_rate": (cost > 0).float().mean(),
                     "cost_value_target_mean": batch["cost_value_target"].mean(),
@@ -218,19 +323,32 @@ class PPOLagrangian:
                 }
             )
         )
+        if self.last_cost is not None:  # nothing to report before the first episode ends
+            logs["episode_cost"] = self.last_cost
+            logs["cost_violation"] = self.last_cost - self.cfg.cost_limit
         logs["episode_cost_given"] = float(episode_cost is not None)
         logs["num_updates"] = float(self.num_updates)
         return logs
 
     def _parts(self) -> dict[str, Any]:
-        return {"loss": self.loss, "cost_critic": self.cost_critic, "optimisers": self.optimisers, "lagrange": self.lagrange}
+        return {
+            "loss": self.loss,
+            "cost_critic": self.cost_critic,
+            "optimisers": self.optimisers,
+            "lagrange": self.lagrange,
+            "episode_costs": self.episode_costs,
+        }
 
     def state_dict(self) -> dict[str, Any]:
-        """Actor and reward critic (in ``loss``), cost critic, optimisers, the multiplier."""
-        return parts_state_dict(self._parts(), self.num_updates)
+        """Actor and reward critic (in ``loss``), cost critic, optimisers, the multiplier and
+        the open episodes' running costs."""
+        state = parts_state_dict(self._parts(), self.num_updates)
+        state["last_cost"] = self.last_cost
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.num_updates = load_parts_state_dict(self._parts(), state)
+        self.last_cost = state["last_cost"]
 
 
 def make_ppo_lagrangian(cfg: CPOConfig | Any, obs_dim: int, action_spec: TensorSpec) -> PPOLagrangian:
@@ -262,6 +380,7 @@ def make_ppo_lagrangian(cfg: CPOConfig | Any, obs_dim: int, action_spec: TensorS
         gae=gae,
         cost_gae=cost_gae,
         lagrange=LagrangeMultiplier(cfg.lagrange, limit=cfg.cost_limit),
+        episode_costs=EpisodeCostTracker(cfg.cost_gamma),
         optimisers=optimisers,
     )
 

@@ -1,6 +1,9 @@
-"""Greedy heuristic controller (SPEC.md §8 "Heuristic (greedy)").
+"""A global planner, beyond the paper (``heuristic_kind: planner``, ``+exp=heuristic_planner``).
 
-A strong, honest baseline that also stands in for the LLM (SAC+Heuristic, the LLM's fallback).
+The paper's heuristic is greedy (:mod:`uavlae.policies.greedy`); this one plans shortest paths
+around BZ/NFZ with energy and time budgets, a stronger baseline reported under its own name
+(SPEC.md §8), which can also stand in for the LLM (``+exp=sac_heuristic_planner``, the LLM's
+fallback with ``heuristic_kind: planner``).
 It reads the env's raw ``("state", NAME)`` entries (docs/env_contract.md), uses only what the
 DCU may know (the static map, GE data, its own energy, and OUs within the perception radius)
 and returns an action ``[B, 2]`` in [-1, 1] (velocity / v_max). Fully batched; no loop over rows.
@@ -109,7 +112,7 @@ def _blocked(p0: Tensor, p1: Tensor, rects: Tensor, margin: Tensor, mask: Tensor
 
 
 class HeuristicPolicy(TensorDictModuleBase):
-    """The greedy controller; ``act(state)`` for raw tensors, ``forward(td)`` as a TorchRL policy.
+    """The global planner; ``act(state)`` for raw tensors, ``forward(td)`` as a TorchRL policy.
 
     It keeps two per-row caches: the scenario's graph (rebuilt when a row's map changes) and the
     row's target and waypoint (replanned when the waypoint is near, the target is served, the

@@ -1,0 +1,106 @@
+"""The paper's greedy heuristic against the global planner beyond the paper, on the same scenarios.
+
+    python experiments/heuristics_table.py          # make heuristics-table; writes results/heuristics_table.{json,md}
+
+Each (method, evaluation set) is one ``python -m uavlae.train +exp=METHOD`` subprocess (the
+evaluation-only controllers: no training) with ``trainer.eval_set`` pointing at the set:
+
+- the paper table's fixed 32 scenarios (``results/paper_table_eval_set.json``);
+- 256 scenarios sampled with ``--sample-seed`` and saved once to
+  ``results/heuristics_eval_set_256.json``.
+
+Writes ``results/heuristics_table.json`` (the five metrics and the per-event rates of every run,
+the exact commands, wall-clock seconds and the machine) and ``results/heuristics_table.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from uavlae.envs import make_env_config
+from uavlae.envs.metrics import PAPER_METRICS
+from uavlae.envs.scenario import sample_scenarios, save_scenarios, unstack_scenarios
+from uavlae.files import atomic_write, dump_json
+from uavlae.machine import describe_machine
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "results"
+METHODS = {
+    "heuristic": "the paper's greedy heuristic (uavlae.policies.greedy)",
+    "heuristic_planner": "visibility-graph planner, beyond the paper (uavlae.policies.heuristic)",
+}
+EVENTS = ("bz_collision", "nfz_entry", "ou_collision", "boundary_exit")  # columns of episodes.csv
+
+
+def _sampled_set(n: int, seed: int) -> Path:
+    path = RESULTS / f"heuristics_eval_set_{n}.json"
+    if not path.is_file():
+        g = torch.Generator().manual_seed(seed)
+        save_scenarios(path, unstack_scenarios(sample_scenarios(make_env_config(), n, g)))
+    return path
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sampled", type=int, default=256, help="size of the sampled evaluation set")
+    p.add_argument("--sample-seed", type=int, default=2026)
+    p.add_argument("--eval-seed", type=int, default=12345, help="seeds the evaluation env (OU motion)")
+    a = p.parse_args()
+    sets = {"paper_table_32": RESULTS / "paper_table_eval_set.json", f"sampled_{a.sampled}": _sampled_set(a.sampled, a.sample_seed)}
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for set_name, set_path in sets.items():
+            for method in METHODS:
+                run_dir = Path(tmp) / f"{method}_{set_name}"
+                cmd = [
+                    sys.executable, "-m", "uavlae.train", f"+exp={method}", f"run_dir={run_dir}",
+                    f"trainer.eval_set={set_path}", f"trainer.eval_seed={a.eval_seed}", "trainer.eval_plots=0",
+                    "logger.wandb.mode=disabled",
+                ]
+                t0 = time.perf_counter()
+                subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+                wall = time.perf_counter() - t0
+                final = json.loads((run_dir / "final_metrics.json").read_text())
+                metrics = {k: final[f"eval/{k}"] for k in (*PAPER_METRICS, "mean_length")}
+                with open(next((run_dir / "eval").glob("*/episodes.csv"))) as f:
+                    rows = list(csv.DictReader(f))
+                for k in EVENTS:  # the share of episodes that ended in each kind of collision
+                    metrics[f"{k}_rate"] = sum(str(r[k]).lower() in ("true", "1", "1.0") for r in rows) / len(rows)
+                shown = [c if not c.startswith("run_dir=") else "run_dir=<tmp>" for c in cmd[1:]]
+                runs.append({"method": method, "eval_set": set_name, "episodes": final.get("eval/n_episodes"),
+                             "metrics": metrics, "wall_s": round(wall, 1), "command": "python " + " ".join(shown)})
+                print(method, set_name, {k: round(v, 3) for k, v in metrics.items()}, f"{wall:.0f} s", flush=True)
+    out = {"runs": runs, "methods": METHODS, "sets": {k: str(v.relative_to(ROOT)) for k, v in sets.items()},
+           "command": "python experiments/heuristics_table.py " + " ".join(sys.argv[1:]), "machine": describe_machine()}
+    dump_json(RESULTS / "heuristics_table.json", out)
+    lines = [
+        "# The greedy heuristic (the paper's) and the global planner (beyond the paper)", "",
+        f"Command: `{out['command'].strip()}`; one episode per scenario, up to t_max slots; "
+        f"evaluation env seed {a.eval_seed}. Machine: {out['machine']['cpu']}, torch {out['machine']['torch']}.", "",
+        "| method | evaluation set | episodes | DCR | CR | SLR | RVR | ECR | BZ | NFZ | OU | wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        m = r["metrics"]
+        lines.append(
+            f"| {r['method']} | {r['eval_set']} | {r['episodes']:.0f} | "
+            + " | ".join(f"{m[k]:.3f}" for k in PAPER_METRICS)
+            + " | " + " | ".join(f"{m[k + '_rate']:.3f}" for k in EVENTS[:3])
+            + f" | {r['wall_s']} |"
+        )
+    lines += ["", "BZ, NFZ, OU: the share of episodes that ended in that collision (their sum is CR)."]
+    text = ("\n".join(lines) + "\n").encode()
+    atomic_write(RESULTS / "heuristics_table.md", lambda fh: fh.write(text))
+
+
+if __name__ == "__main__":
+    main()
