@@ -270,7 +270,9 @@ def table(results: dict[str, Any]) -> str:
     lines = [f"# Advice quality on {results['states']['n']} saved triggered states "
              f"({results['states']['kinds']}; H = {hold} slots held)", "",
              "Fractions of states with the event (H: within the held slots); progress toward the "
-             "current target in metres; `python benchmarks/advice_quality.py` (see its docstring).", ""]
+             "current target in metres; `python benchmarks/advice_quality.py` (see its docstring). The "
+             "latencies here come from runs beside other jobs; the timed ones are in "
+             "`benchmarks/llm_call_breakdown.json`.", ""]
     sizes = sorted({a["n_states"] for a in adv.values()}, reverse=True)
     for size in sizes:
         names = [k for k, a in adv.items() if a["n_states"] >= size]
