@@ -70,7 +70,7 @@ class Evaluator:
         n_plots: trajectories drawn per evaluation.
         device: where the env runs.
         compile_step: step the evaluation env through ``torch.compile`` (``UAVEnv(compile_step=True)``:
-            the same outputs, ~2x faster per evaluation after a one-off compile on the first).
+            the same outputs; a one-off compile on the first evaluation, `docs/performance.md` for its worth).
     """
 
     def __init__(
