@@ -134,8 +134,8 @@ def env_overrides(cfg_env: Any, task_overrides: Sequence[str] = ()) -> dict[str,
     """What a command line changes in the world, as ``{dotted key: value}``: every key where
     ``cfg_env`` (the command line's composed ``env``) differs from ``conf/env/default.yaml``,
     and every ``env.KEY=VALUE`` the command line names (so a default value can be asked for)."""
-    default = _flat(OmegaConf.to_container(OmegaConf.load(CONF_DIR / "env" / "default.yaml"), resolve=True))
-    given = _flat(OmegaConf.to_container(cfg_env, resolve=True))
+    default = flatten_keys(OmegaConf.to_container(OmegaConf.load(CONF_DIR / "env" / "default.yaml"), resolve=True))
+    given = flatten_keys(OmegaConf.to_container(cfg_env, resolve=True))
     out = {k: v for k, v in given.items() if k not in default or default[k] != v}
     for o in task_overrides:
         key = o.split("=", 1)[0].lstrip("+~")
@@ -144,12 +144,13 @@ def env_overrides(cfg_env: Any, task_overrides: Sequence[str] = ()) -> dict[str,
     return out
 
 
-def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+def flatten_keys(d: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested dict as one level, its keys joined by dots (the run checks compare configs so)."""
     if not isinstance(d, dict):
         return {prefix: d}
     out: dict[str, Any] = {}
     for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}." if isinstance(v, dict) else f"{prefix}{k}"))
+        out.update(flatten_keys(v, f"{prefix}{k}." if isinstance(v, dict) else f"{prefix}{k}"))
     return out
 
 

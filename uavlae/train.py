@@ -44,7 +44,7 @@ from uavlae.checkpoint import (
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.evaluate import Evaluator, deterministic_actor, eval_set_path, load_or_make_eval_set
+from uavlae.evaluate import Evaluator, flatten_keys, deterministic_actor, eval_set_path, load_or_make_eval_set
 from uavlae.factories import (
     CONF_DIR,
     behaviour_actor,
@@ -103,7 +103,8 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
     wanted = _comparable(_resolved(cfg))
     saved = _comparable(json.loads(saved_file.read_text()))
     if wanted != saved:
-        changed = sorted(k for k in set(_flat(wanted)) | set(_flat(saved)) if _flat(wanted).get(k) != _flat(saved).get(k))
+        want, have = flatten_keys(wanted), flatten_keys(saved)
+        changed = sorted(k for k in set(want) | set(have) if want.get(k) != have.get(k))
         raise ValueError(
             f"{run_dir} holds a run of another config (differs in {changed[:8]}); "
             "remove it or set experiment.root elsewhere"
@@ -114,15 +115,6 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
     if (run_dir / "checkpoints" / "last.pt").is_file() or (run_dir / "checkpoints" / "prev.pt").is_file():
         return "resume", None
     return "new", None
-
-
-def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}." if isinstance(v, dict) else f"{prefix}{k}"))
-    return out
 
 
 def _prepare(cfg: DictConfig) -> tuple[DictConfig, dict[str, Any] | None]:
