@@ -49,12 +49,11 @@ from typing import Any
 
 import torch
 from pydantic import Field
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.policies.controller import StateController
 from uavlae.validation import StrictModel, parse_model
 
 STATE_IN_KEYS = (
@@ -93,7 +92,7 @@ def _rotate(v: Tensor, angle: Tensor) -> Tensor:
     return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], dim=-1)
 
 
-class GreedyPolicy(TensorDictModuleBase):
+class GreedyPolicy(StateController):
     """The paper's greedy controller (module doc: the rules); ``act(state)`` or ``forward(td)``.
 
     Args:
@@ -101,8 +100,8 @@ class GreedyPolicy(TensorDictModuleBase):
         cfg: the heuristic's numbers (default: :class:`GreedyConfig`'s).
     """
 
+    state_keys = STATE_IN_KEYS
     in_keys = [("state", k) for k in STATE_IN_KEYS]
-    out_keys = ["action"]
 
     def __init__(self, env_cfg: EnvConfig | Mapping | None = None, cfg: GreedyConfig | Mapping | None = None):
         super().__init__()
@@ -120,21 +119,6 @@ class GreedyPolicy(TensorDictModuleBase):
         self._mem = None if mem is None else {k: v.clone() for k, v in mem.items()}
 
     # ------------------------------------------------------------------ acting
-    @torch.no_grad()
-    def act(self, state: Mapping[str, Tensor] | TensorDictBase) -> Tensor:
-        """Action ``[B, 2]`` in [-1, 1] from the raw state entries (``[B, ...]`` or unbatched)."""
-        s = {k: state[k] for k in STATE_IN_KEYS}
-        unbatched = s["position"].dim() == 1
-        if unbatched:
-            s = {k: v.unsqueeze(0) for k, v in s.items()}
-        v = self._velocity(s)
-        action = (v / self.env_cfg.motion.v_max).clamp(-1.0, 1.0)
-        return action.squeeze(0) if unbatched else action
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict.set("action", self.act(tensordict.get("state")))
-        return tensordict
-
     def _memory(self, s: dict[str, Tensor]) -> dict[str, Tensor]:
         p, step = s["position"], s["step"].to(torch.int64)
         B, G = p.shape[0], s["ge_pos"].shape[-2]

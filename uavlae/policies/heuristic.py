@@ -37,12 +37,11 @@ from typing import Any
 
 import torch
 from pydantic import Field, model_validator
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.policies.controller import StateController
 from uavlae.validation import StrictModel, parse_model
 
 # raw state entries the heuristic reads (docs/env_contract.md)
@@ -111,7 +110,7 @@ def _blocked(p0: Tensor, p1: Tensor, rects: Tensor, margin: Tensor, mask: Tensor
     return ph.segment_hits_rects(p0, p1, _inflate(rects, margin), mask).any(-1)
 
 
-class HeuristicPolicy(TensorDictModuleBase):
+class HeuristicPolicy(StateController):
     """The global planner; ``act(state)`` for raw tensors, ``forward(td)`` as a TorchRL policy.
 
     It keeps two per-row caches: the scenario's graph (rebuilt when a row's map changes) and the
@@ -124,8 +123,8 @@ class HeuristicPolicy(TensorDictModuleBase):
         cfg: the heuristic's own numbers (default: :class:`HeuristicConfig`'s).
     """
 
+    state_keys = STATE_IN_KEYS
     in_keys = [("state", k) for k in STATE_IN_KEYS]
-    out_keys = ["action"]
 
     def __init__(self, env_cfg: EnvConfig | Mapping | None = None, cfg: HeuristicConfig | Mapping | None = None):
         super().__init__()
@@ -274,21 +273,6 @@ class HeuristicPolicy(TensorDictModuleBase):
         return cache, changed
 
     # ------------------------------------------------------------------ acting
-    @torch.no_grad()
-    def act(self, state: Mapping[str, Tensor] | TensorDictBase) -> Tensor:
-        """Action ``[B, 2]`` in [-1, 1] from the raw state entries (``[B, ...]`` or unbatched)."""
-        s = {k: state[k] for k in STATE_IN_KEYS}
-        unbatched = s["position"].dim() == 1
-        if unbatched:
-            s = {k: v.unsqueeze(0) for k, v in s.items()}
-        v = self._velocity(s)
-        action = (v / self.env_cfg.motion.v_max).clamp(-1.0, 1.0)
-        return action.squeeze(0) if unbatched else action
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict.set("action", self.act(tensordict.get("state")))
-        return tensordict
-
     def _velocity(self, s: dict[str, Tensor]) -> Tensor:
         c, m = self.cfg, self.env_cfg.motion
         p = s["position"]
