@@ -62,6 +62,18 @@ def make_ppo_config(cfg: Any = None, **overrides: Any) -> PPOConfig:
     return parse_config(PPOConfig, cfg, **overrides)
 
 
+def ppo_minibatch_step(
+    loss: ClipPPOLoss, optimisers: dict[str, torch.optim.Optimizer], max_grad_norm: float | None, mb: TensorDictBase
+) -> dict[str, torch.Tensor]:
+    """One gradient step of a clipped-PPO loss on a minibatch: objective + critic + entropy."""
+    out = loss(mb)
+    total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+    norms = optimiser_step(optimisers, total, max_grad_norm)
+    logs = dict(out.detach().items())
+    logs.update(norms)
+    return logs
+
+
 def run_epochs(
     flat: TensorDictBase,
     epochs: int,
@@ -101,12 +113,7 @@ class PPO:
     num_updates: int = 0
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
-        out = self.loss(mb)
-        total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
-        norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
-        logs = dict(out.detach().items())
-        logs.update(norms)
-        return logs
+        return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One PPO update on an on-policy batch ``[*B, T]`` (module doc lists its keys)."""

@@ -37,8 +37,10 @@ from torchrl.modules import NormalParamExtractor, ProbabilisticActor, TanhNormal
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, adam, load_parts_state_dict, optimiser_step, parse_config, parts_state_dict, to_floats
-from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
+from uavlae.algos.common import StrictConfig, adam, load_parts_state_dict, parse_config, parts_state_dict, to_floats
+from uavlae.algos.ppo import (
+    PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, ppo_minibatch_step, run_epochs,
+)
 from uavlae.envs.world import ObservationLayout
 from uavlae.policies.entity_transformer import EntityHead
 from uavlae.policies.networks import SCALE_AT_ZERO, SCALE_LB, SCALE_MIN, action_bounds
@@ -147,12 +149,7 @@ class Wang:
     num_updates: int = 0
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
-        out = self.loss(mb)
-        total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
-        norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
-        logs = dict(out.detach().items())
-        logs.update(norms)
-        return logs
+        return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)
 
     def intrinsic_reward(self, next_obs: torch.Tensor, update_stats: bool = True) -> torch.Tensor:
         """(e - running mean(e)) / running std(e), ``[..., 1]`` (the stats first take in this batch)."""
