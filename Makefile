@@ -132,7 +132,7 @@ SENS_GRID_r2 ?=
 SENS_GRID_r5 ?=
 SENS_GRID_r8 ?=
 
-.PHONY: experiments-train experiments-scenarios experiments-sensitivity experiments-llm experiments-report quick quick-llm paper long-sac
+.PHONY: experiments-train experiments-scenarios experiments-sensitivity experiments-llm experiments-report experiments-results quick quick-llm paper long-sac
 experiments-train: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train $(PROFILE_ARGS)
 
@@ -158,6 +158,17 @@ experiments-llm: $(STAMP)
 experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
 
+# What a profile's runs leave in the repository: the report (tables, figures, report.md) in
+# results/<profile>/, and the runs' own records without checkpoints, wandb files or pictures in
+# results/<profile>/runs.tar.xz, so that the report can be rebuilt and extended elsewhere:
+#   mkdir -p runs && tar xJf results/quick/runs.tar.xz -C runs && make quick EXP_ARGS=seed=3
+# (finished runs are kept as they are; only what is missing runs)
+RESULTS_DIR ?= results/$(PROFILE)
+experiments-results: $(STAMP)
+	$(BIN)/python -m experiments.report $(EXP_ROOT) --out $(RESULTS_DIR)
+	tar cJf $(RESULTS_DIR)/runs.tar.xz --exclude=checkpoints --exclude=wandb --exclude='*.png' --exclude='*.pdf' \
+		--exclude=report -C $(dir $(abspath $(EXP_ROOT))) $(notdir $(abspath $(EXP_ROOT)))
+
 # quick: the grids of the sensitivity figures cut to the default and one value on each side, the
 # profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in
 # quick-llm); benchmarks/quick_profile_fps.json adds up what this costs
@@ -169,7 +180,7 @@ quick: $(STAMP)
 	$(MAKE) experiments-train PROFILE=quick
 	$(MAKE) experiments-scenarios PROFILE=quick
 	$(MAKE) experiments-sensitivity $(QUICK_SENS)
-	$(MAKE) experiments-report PROFILE=quick
+	$(MAKE) experiments-results PROFILE=quick
 
 # the LLM figures at the quick size: one seed, 20k frames a run (each LLM answer takes seconds
 # here), the LLM alone cut at 300 steps an episode (one call a step: 32 x 1000 calls uncut)
