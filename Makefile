@@ -214,15 +214,6 @@ long-sac: $(STAMP)
 bench-quick-fps: $(STAMP)
 	$(BIN)/python benchmarks/quick_profile_fps.py
 
-# The paper's table: every method at equal training frames, same seeds, one fixed
-# evaluation set -> results/paper_table.{csv,md,json}. FRAMES / SEEDS / LLM_CAP_MIN to change.
-.PHONY: paper-table
-FRAMES ?= 12288
-SEEDS ?= 0 1
-LLM_CAP_MIN ?= 6
-paper-table: $(STAMP)
-	$(BIN)/python experiments/paper_table.py --frames $(FRAMES) --seeds $(SEEDS) --cap-minutes $(LLM_CAP_MIN)
-
 # Where a training frame's time goes, ours vs SB3's SAC, part by part -> benchmarks/ttt_cost_breakdown.json
 .PHONY: bench-breakdown
 bench-breakdown: $(STAMP)

@@ -1,1 +1,1 @@
-"""The paper's experiments: the sweeps' aggregation (report.py) and the comparison table (paper_table.py)."""
+"""The paper's experiments: the sweeps' aggregation (report.py) and the heuristics' table (heuristics_table.py)."""
