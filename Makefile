@@ -176,9 +176,12 @@ QUICK_SENS := PROFILE=quick_sensitivity EXP_ROOT=runs/quick SENS_EXP=sac SENS_SE
 	SENS_GRID_actor_lr=algo.actor_lr=3.0e-5,1.0e-4,3.0e-4 SENS_GRID_critic_lr=algo.critic_lr=1.0e-4,3.0e-4,1.0e-3 \
 	SENS_GRID_batch_size=trainer.batch_size=64,256,512 SENS_GRID_r1=env.reward.sigma.0=4.0,8.0,16.0 \
 	SENS_GRID_r2=env.reward.sigma.1=0.2,0.4,0.8 SENS_GRID_r5=env.reward.sigma.4=0.3,0.6,1.2 SENS_GRID_r8=env.reward.sigma.7=0.5,1.0,2.0
+# QUICK_METHODS=sac,ppo,... trains and evaluates only those methods (default: every method of the sweeps)
+QUICK_METHODS ?=
+QUICK_EXP = $(if $(QUICK_METHODS),+exp=$(QUICK_METHODS))
 quick: $(STAMP)
-	$(MAKE) experiments-train PROFILE=quick
-	$(MAKE) experiments-scenarios PROFILE=quick
+	$(MAKE) experiments-train PROFILE=quick EXP_ARGS="$(QUICK_EXP)"
+	$(MAKE) experiments-scenarios PROFILE=quick EXP_ARGS="$(QUICK_EXP)"
 	$(MAKE) experiments-sensitivity $(QUICK_SENS)
 	$(MAKE) experiments-results PROFILE=quick
 
