@@ -88,7 +88,12 @@ bench-advice: $(STAMP)
 # Training frames/s and metrics of +exp=wang beside +exp=ppo at one frame budget -> benchmarks/wang_vs_ppo.json
 .PHONY: bench-wang
 bench-wang: $(STAMP)
-	$(BIN)/python benchmarks/wang_vs_ppo.py --frames 8192
+	$(BIN)/python benchmarks/vs_ppo.py --methods wang --frames 8192
+
+# The same for +exp=theile (the D4-averaged CNN on maps) -> benchmarks/theile_vs_ppo.json
+.PHONY: bench-theile
+bench-theile: $(STAMP)
+	$(BIN)/python benchmarks/vs_ppo.py --methods theile --frames 8192
 
 # The greedy heuristic and the planner on the same 32 and 256 scenarios -> results/heuristics_table.{json,md}
 .PHONY: heuristics-table
