@@ -348,3 +348,32 @@ def test_maps_inside_the_compiled_step_match_eager():
         out_e, td_e = eager.step_and_maybe_reset(td_e)
         out_c, td_c = compiled.step_and_maybe_reset(td_c)
         torch.testing.assert_close(out_c["next", "observation"], out_e["next", "observation"], rtol=1e-5, atol=1e-4)
+
+
+def test_regulariser_reuses_the_losss_pass_with_the_same_gradients():
+    # PPO's loss runs the actor and the critic on the minibatch; the regulariser takes the members
+    # of those passes instead of running the 8 members again: same value, same gradients
+    env = UAVEnv({"maps": TINY_MAPS}, batch_size=[4], seed=2)
+    algo = make_theile({"regularizer": {"actor": 0.3, "critic": 0.2}}, env.layout.size, env.action_spec, env.layout)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        batch = algo.gae(env.rollout(4, algo.actor, break_when_any_done=False))
+    mb = batch.reshape(-1)
+    params = [p for m in (algo.actor_net, algo.critic_net) for p in m.parameters()]
+
+    def grads(total):
+        g = torch.autograd.grad(total, params, allow_unused=True)
+        return [torch.zeros_like(p) if x is None else x for p, x in zip(params, g)]
+
+    algo.loss(mb)
+    assert algo.actor_net._kept is not None and algo.actor_net._kept[0] is mb["observation"]
+    kept = algo.regularizer(mb)
+    assert algo.actor_net._kept is None and algo.critic_net._kept is None
+    fresh = algo.regularizer(mb)  # nothing kept now: new passes
+    for k in ("loss_equivariance_actor", "loss_equivariance_critic"):
+        torch.testing.assert_close(kept[k], fresh[k])
+    for a, b in zip(grads(sum(kept.values())), grads(sum(fresh.values()))):
+        torch.testing.assert_close(a, b)
+    # under no_grad (collection, GAE) nothing is kept
+    with torch.no_grad():
+        algo.actor(mb.select("observation").clone())
+    assert algo.actor_net._kept is None

@@ -78,9 +78,9 @@ class Theile:
         out: dict[str, torch.Tensor] = {}
         w = self.cfg.regularizer
         if w.actor > 0:
-            out["loss_equivariance_actor"] = w.actor * member_spread(self.actor_net.members(obs)[..., :2])
+            out["loss_equivariance_actor"] = w.actor * member_spread(self.actor_net.members_of(obs)[..., :2])
         if w.critic > 0:
-            out["loss_equivariance_critic"] = w.critic * member_spread(self.critic_net.members(obs))
+            out["loss_equivariance_critic"] = w.critic * member_spread(self.critic_net.members_of(obs))
         return out
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -130,6 +130,9 @@ def make_theile(cfg: TheileConfig | Any, obs_dim: int, action_spec: TensorSpec, 
     sizes = dict(channels=cfg.cnn.channels, stride=cfg.cnn.stride, hidden=cfg.cnn.head_hidden)
     actor_net = D4Ensemble(layout, "action", **sizes)
     critic_net = D4Ensemble(layout, "value", **sizes)
+    # the regulariser reads the members of the pass ClipPPOLoss has just made on the same minibatch
+    actor_net.keep_members = cfg.regularizer.actor > 0
+    critic_net.keep_members = cfg.regularizer.critic > 0
     extractor = NormalParamExtractor(scale_mapping=f"biased_softplus_{SCALE_AT_ZERO}_{SCALE_MIN}", scale_lb=SCALE_LB)
     params = TensorDictModule(nn.Sequential(actor_net, extractor), in_keys=["observation"], out_keys=["loc", "scale"])
     actor = ProbabilisticActor(

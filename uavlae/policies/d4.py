@@ -142,6 +142,11 @@ class D4Ensemble(nn.Module):
         r = matrices()
         self.register_buffer("r", r, persistent=False)  # [8, 2, 2]
         self.register_buffer("r_inv", r.transpose(-1, -2).contiguous(), persistent=False)  # orthogonal
+        # With keep_members, a forward pass under autograd keeps (its input, its members) until
+        # members_of takes them: the regulariser on the minibatch PPO's loss has just run the actor
+        # on needs no second pass of the 8 members.
+        self.keep_members = False
+        self._kept: tuple[Tensor, Tensor] | None = None
 
     def members(self, obs: Tensor) -> Tensor:
         lead = obs.shape[:-1]
@@ -160,7 +165,18 @@ class D4Ensemble(nn.Module):
         return out.reshape(N_ELEMENTS, *lead, out.shape[-1])
 
     def forward(self, obs: Tensor) -> Tensor:
-        return self.members(obs).mean(0)
+        members = self.members(obs)
+        if self.keep_members and torch.is_grad_enabled():
+            self._kept = (obs, members)
+        return members.mean(0)
+
+    def members_of(self, obs: Tensor) -> Tensor:
+        """:meth:`members` of ``obs``: those the last forward pass kept when it ran on this very
+        tensor, else a new pass. Either way nothing stays kept."""
+        kept, self._kept = self._kept, None
+        if kept is not None and kept[0] is obs:
+            return kept[1]
+        return self.members(obs)
 
 
 def member_spread(members: Tensor) -> Tensor:
