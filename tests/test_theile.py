@@ -377,3 +377,14 @@ def test_regulariser_reuses_the_losss_pass_with_the_same_gradients():
     with torch.no_grad():
         algo.actor(mb.select("observation").clone())
     assert algo.actor_net._kept is None
+
+
+def test_yaml_mirrors_the_config():
+    import yaml
+
+    from uavlae.algos.theile import TheileConfig
+    from uavlae.factories import CONF_DIR
+
+    data = yaml.safe_load((CONF_DIR / "algo" / "theile.yaml").read_text())
+    assert set(data) == set(TheileConfig.model_fields)
+    assert make_theile_config(data) == TheileConfig()
