@@ -4,6 +4,7 @@ ensemble's equivariance (by hand for a quarter turn and a reflection), the regul
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -377,6 +378,9 @@ def test_regulariser_reuses_the_losss_pass_with_the_same_gradients():
     with torch.no_grad():
         algo.actor(mb.select("observation").clone())
     assert algo.actor_net._kept is None
+    # a kept pass does not travel with a copy of the network (the export deep-copies it)
+    algo.actor(mb.select("observation").clone())
+    assert algo.actor_net._kept is not None and copy.deepcopy(algo.actor_net)._kept is None
 
 
 def test_yaml_mirrors_the_config():

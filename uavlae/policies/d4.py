@@ -170,6 +170,11 @@ class D4Ensemble(nn.Module):
             self._kept = (obs, members)
         return members.mean(0)
 
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_kept"] = None  # a pass's autograd graph is no part of the module (copies, pickles)
+        return state
+
     def members_of(self, obs: Tensor) -> Tensor:
         """:meth:`members` of ``obs``: those the last forward pass kept when it ran on this very
         tensor, else a new pass. Either way nothing stays kept."""
