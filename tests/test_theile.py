@@ -28,7 +28,7 @@ HAND_MAPS = {"enabled": True, "local_size": 4, "local_cell": 10.0, "global_size"
 
 def _hand_env() -> UAVEnv:
     # DCU at (100, 100); one building over [110, 130] x [100, 115]; a GE with 2 of data_max 3 at
-    # (85, 115); an OU 9.4 m away at (95, 92) and one 40 m away at (60, 100), beyond PR = 20 m
+    # (85, 115); an OU 9.4 m away at (95, 92) and one 40 m away at (60, 100), beyond the 20 m perception radius
     scen = Scenario(bz=[(110.0, 100.0, 130.0, 115.0)], ge_pos=[(85.0, 115.0)], ge_data=[2.0],
                     ou_pos=[(95.0, 92.0), (60.0, 100.0)], ou_vel=[(0.0, 0.0), (0.0, 0.0)], start=(100.0, 100.0))
     cfg = {"maps": HAND_MAPS, "ge": {"count": {"min": 1, "max": 1}}, "ou": {"count": {"min": 2, "max": 2}},
@@ -308,7 +308,7 @@ def test_exp_theile_trains_resumes_and_evaluates(tmp_path):
     assert 0.0 <= straight["eval/DCR"] <= 1.0
     state, _ = load_checkpoint(tmp_path / "a")
     assert state["config"]["env"]["maps"]["enabled"] and state["config"]["algo"]["name"] == "theile"
-    # the same run, stopped after its checkpoint at 192 frames, then resumed from it
+    # the same run, cut short after its checkpoint at 192 frames, then resumed from it
     b = tmp_path / "b"
     run(cfg("+exp=theile", f"run_dir={b}", *TRAIN))
     (b / "checkpoints" / LAST).unlink()

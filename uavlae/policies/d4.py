@@ -74,8 +74,8 @@ class MapInputs(nn.Module):
         if not layout.map_shapes:
             raise ValueError("the theile networks read map observations: set env.maps.enabled=true")
         cols = layout.columns()
-        vec = [i for n in VECTOR_COLUMNS if n in cols for i in range(cols[n].start, cols[n].stop)]
-        inv = [i for n in INVARIANT_COLUMNS if n in cols for i in range(cols[n].start, cols[n].stop)]
+        vec = [i for n in VECTOR_COLUMNS if n in cols for i in range(*cols[n].indices(layout.flat_size))]
+        inv = [i for n in INVARIANT_COLUMNS if n in cols for i in range(*cols[n].indices(layout.flat_size))]
         self.register_buffer("vec_idx", torch.tensor(vec, dtype=torch.int64), persistent=False)
         self.register_buffer("inv_idx", torch.tensor(inv, dtype=torch.int64), persistent=False)
         self.flat_size = layout.flat_size
