@@ -88,7 +88,14 @@ bench-advice: $(STAMP)
 # Training frames/s and metrics of +exp=wang beside +exp=ppo at one frame budget -> benchmarks/wang_vs_ppo.json
 .PHONY: bench-wang
 bench-wang: $(STAMP)
-	$(BIN)/python benchmarks/wang_vs_ppo.py --frames 8192
+	$(BIN)/python benchmarks/vs_ppo.py --methods wang --frames 8192
+
+# +exp=theile (the D4-averaged CNN on maps) and +exp=sac beside +exp=ppo on env=shaped_geodesic,
+# 4096 frames each (SAC's random warm-up cut to 1024 of them) -> benchmarks/theile_vs_ppo.json
+.PHONY: bench-theile
+bench-theile: $(STAMP)
+	$(BIN)/python benchmarks/vs_ppo.py --frames 4096 --env shaped_geodesic trainer.init_random_frames=1024 \
+		trainer.baselines=false --methods theile sac --out benchmarks/theile_vs_ppo.json
 
 # The greedy heuristic and the planner on the same 32 and 256 scenarios -> results/heuristics_table.{json,md}
 .PHONY: heuristics-table

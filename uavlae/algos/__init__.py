@@ -2,7 +2,7 @@
 
 Every learner has ``actor`` (the acting policy), ``update(batch) -> dict[str, float]``,
 ``state_dict()`` / ``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample
-``[N]``; on-policy (ppo, cpo, wang): a collector batch ``[*B, T]``, time last.
+``[N]``; on-policy (ppo, cpo, wang, theile): a collector batch ``[*B, T]``, time last.
 """
 
 from __future__ import annotations
@@ -15,13 +15,16 @@ from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
 from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
 from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
 from uavlae.algos.sac import SAC, SACConfig, make_sac
+from uavlae.algos.theile import Theile, TheileConfig, make_theile
 from uavlae.algos.wang import Wang, WangConfig, make_wang
 
-MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian, "wang": make_wang}
-NEEDS_LAYOUT = frozenset({"wang"})  # cut the observation into entities: need the env's ObservationLayout
+MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian, "wang": make_wang,
+          "theile": make_theile}
+# cut the observation into entities (wang) or find its maps (theile): need the env's ObservationLayout
+NEEDS_LAYOUT = frozenset({"wang", "theile"})
 OFF_POLICY = frozenset({"sac", "ddpg"})
 
-Learner = SAC | DDPG | PPO | PPOLagrangian | Wang
+Learner = SAC | DDPG | PPO | PPOLagrangian | Wang | Theile
 
 
 def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec, layout: Any = None) -> Learner:
@@ -48,6 +51,8 @@ __all__ = [
     "PPOLagrangian",
     "SAC",
     "SACConfig",
+    "Theile",
+    "TheileConfig",
     "Wang",
     "WangConfig",
     "make_learner",

@@ -63,13 +63,22 @@ def make_ppo_config(cfg: Any = None, **overrides: Any) -> PPOConfig:
 
 
 def ppo_minibatch_step(
-    loss: ClipPPOLoss, optimisers: dict[str, torch.optim.Optimizer], max_grad_norm: float | None, mb: TensorDictBase
+    loss: ClipPPOLoss,
+    optimisers: dict[str, torch.optim.Optimizer],
+    max_grad_norm: float | None,
+    mb: TensorDictBase,
+    extra_losses: Callable[[TensorDictBase], dict[str, torch.Tensor]] | None = None,
 ) -> dict[str, torch.Tensor]:
-    """One gradient step of a clipped-PPO loss on a minibatch: objective + critic + entropy."""
+    """One gradient step of a clipped-PPO loss on a minibatch: objective + critic + entropy, plus
+    every term ``extra_losses(mb)`` returns (a learner's own regulariser; logged by its name)."""
     out = loss(mb)
     total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+    extra = extra_losses(mb) if extra_losses is not None else {}
+    for term in extra.values():
+        total = total + term
     norms = optimiser_step(optimisers, total, max_grad_norm)
     logs = dict(out.detach().items())
+    logs.update({k: v.detach() for k, v in extra.items()})
     logs.update(norms)
     return logs
 

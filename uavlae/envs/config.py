@@ -233,6 +233,27 @@ class SamplingConfig(StrictModel):
     pool_size: int = Field(256, ge=0)
 
 
+class MapsConfig(StrictModel):
+    """[decision] beyond SPEC §6, off by default: rasterised maps centred on the DCU appended to the
+    flat observation (uavlae.envs.maps): a local fine one and a global coarse one, both square with
+    an even number of cells per side, so that the DCU sits on the corner shared by the four central
+    cells and the 90° rotations and the reflections map the grid onto itself."""
+
+    enabled: bool = False
+    local_size: int = Field(32, ge=2, le=256)  # cells per side
+    local_cell: float = Field(2.0, gt=0)  # m: 32 x 2 m spans 64 m, the 20 m perception radius inside
+    global_size: int = Field(16, ge=2, le=256)
+    # m: 16 x 62.5 m spans 1000 m, twice the area's side: the whole area from anywhere in it
+    global_cell: float = Field(62.5, gt=0)
+
+    @field_validator("local_size", "global_size")
+    @classmethod
+    def _even(cls, n: int) -> int:
+        if n % 2:
+            raise ValueError(f"a map's cells per side must be even (the DCU on the centre corner), got {n}")
+        return n
+
+
 class EnvConfig(StrictModel):
     area: AreaConfig = AreaConfig()
     zones: ZonesConfig = ZonesConfig()
@@ -252,6 +273,7 @@ class EnvConfig(StrictModel):
     # [decision] beyond SPEC §6, off by default: ego-centric columns (vector to the current
     # target and its direction, vectors to the nearest points of the nearest BZ and NFZ)
     ego_features: bool = False
+    maps: MapsConfig = MapsConfig()
 
     @model_validator(mode="after")
     def _zones_fit(self) -> "EnvConfig":

@@ -14,6 +14,7 @@ from torch import Tensor
 from uavlae.envs import geodesic as geo
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig
+from uavlae.envs.maps import MAP_CHANNELS, dcu_maps
 
 # The raw state, one row per entry: its shape after the batch dimension B (in the padded sizes
 # G GEs, K OUs, NFZ / RZ / BZ zones of each kind, H·W geodesic grid cells), its dtype, whether it
@@ -297,7 +298,11 @@ def world_step_core(
 
 
 class ObservationLayout:
-    """Normalisation constants and sizes of the flat observation (SPEC §6)."""
+    """Normalisation constants and sizes of the flat observation (SPEC §6).
+
+    With ``env.maps.enabled`` the observation is the flat one (``flat_size`` columns) followed by
+    the local and the global map of :func:`uavlae.envs.maps.dcu_maps`, each flattened in its
+    ``[C, S, S]`` order (``map_shapes``); ``size`` counts them all."""
 
     def __init__(self, cfg: EnvConfig):
         self.cfg = cfg
@@ -307,7 +312,31 @@ class ObservationLayout:
         self.extra = cfg.extra_features
         self.ego = cfg.ego_features
         self._divisor = self._column_divisors()
-        self.size = self._divisor.numel()
+        self.flat_size = self._divisor.numel()
+        m = cfg.maps
+        c = len(MAP_CHANNELS)
+        self.map_shapes = ((c, m.local_size, m.local_size), (c, m.global_size, m.global_size)) if m.enabled else ()
+        self.size = self.flat_size + sum(a * b * d for a, b, d in self.map_shapes)
+
+    def columns(self) -> dict[str, slice]:
+        """Where the parts of the flat observation lie: ``{name: slice of columns}`` (``extra`` and
+        ``ego`` only when on), in :meth:`build`'s order."""
+        g, k = self.n_ge, self.n_ou
+        widths = [("ge_pos", 2 * g), ("ge_data", g), ("ge_tp", g), ("ge_present", g)]
+        for name, n in zip(("nfz", "rz", "bz"), self.n_zone):
+            widths += [(name, 4 * n), (f"{name}_present", n)]
+        widths += [("ou_rel", 2 * k), ("ou_vel", 2 * k), ("ou_seen", k), ("position", 2), ("velocity", 2),
+                   ("energy_left", 1), ("slot_data", 1), ("takeoff", 4), ("landing", 4)]
+        if self.extra:
+            widths.append(("extra", 6))
+        if self.ego:
+            widths += [("target", 2), ("target_dir", 2), ("bz_vec", 2), ("nfz_vec", 2)]
+        out, i = {}, 0
+        for name, w in widths:
+            out[name] = slice(i, i + w)
+            i += w
+        assert i == self.flat_size, (i, self.flat_size)
+        return out
 
     def _column_divisors(self) -> Tensor:
         """The normalising divisor of every observation column (1 for flags and counts), in the
@@ -331,10 +360,13 @@ class ObservationLayout:
         return torch.tensor(cols, dtype=torch.float64)
 
     def build(self, s: dict[str, Tensor]) -> Tensor:
-        """The normalised observation ``[B, size]`` of the raw state ``s`` (SPEC §6)."""
+        """The normalised observation ``[B, size]`` of the raw state ``s`` (SPEC §6), the maps last."""
         p = s["position"]
         parts = self._base_parts(s) + self._extra_parts(s) + self._ego_parts(s)
-        return torch.cat(parts, dim=-1) / self._divisor.to(device=p.device, dtype=p.dtype)
+        flat = torch.cat(parts, dim=-1) / self._divisor.to(device=p.device, dtype=p.dtype)
+        if not self.map_shapes:
+            return flat
+        return torch.cat([flat, *(m.flatten(1) for m in dcu_maps(s, self.cfg))], dim=-1)
 
     def _base_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
         """The raw (unnormalised) base columns, ``[B, n]`` each: GEs, zones, OUs, the DCU."""

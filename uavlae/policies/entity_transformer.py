@@ -51,10 +51,10 @@ class EntityTokens(nn.Module):
         self.n_zone = tuple(layout.n_zone)
         g, k = self.n_ge, self.n_ou
         base = 5 * g + sum(5 * n for n in self.n_zone) + 5 * k
-        self.n_dcu = layout.size - base
+        self.n_dcu = layout.flat_size - base  # with env.maps the maps follow; they are not tokens
         if self.n_dcu < 14:
             raise ValueError(
-                f"the observation layout has {layout.size} columns, {base} of them entities: the DCU part "
+                f"the observation layout has {layout.flat_size} flat columns, {base} of them entities: the DCU part "
                 f"({self.n_dcu}) is shorter than position, velocity, energy, slot data, TA and LA (14)"
             )
         self.feature_sizes = {"dcu": self.n_dcu, "ge": 6, "nfz": 6, "rz": 6, "bz": 6, "ou": 4}

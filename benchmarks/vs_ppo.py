@@ -1,13 +1,15 @@
-"""``wang`` (entity transformer + RND) against ``ppo`` (2x64 MLP) at an equal frame budget.
+"""Learners beside a base learner (``ppo``) at an equal frame budget: training frames/s and metrics.
 
-    python benchmarks/wang_vs_ppo.py --frames 8192   # make bench-wang; writes benchmarks/wang_vs_ppo.json
+    python benchmarks/vs_ppo.py --methods wang --frames 8192     # make bench-wang   -> benchmarks/wang_vs_ppo.json
+    python benchmarks/vs_ppo.py --methods theile --frames 8192   # make bench-theile -> benchmarks/theile_vs_ppo.json
 
-Each method is one ``python -m uavlae.train +exp=METHOD`` subprocess, one after the other, with
-the same seed, world, frame budget and evaluation set (the paper table's 32 scenarios). Reported
-side by side: the training frames/s of the loop (``time/fps`` at the last batch: collection plus
-updates, before the final evaluation) and their ratio, and the five metrics of each
-deterministic actor, beside a uniform-random policy on the same scenarios. Run it under
-``/work/tools/timed``-like isolation: the frames/s are only comparable within one run.
+Each method is one ``python -m uavlae.train +exp=METHOD`` subprocess, the base first, one after
+the other, with the same seed, world, frame budget and evaluation set (the paper table's 32
+scenarios). Reported side by side: the training frames/s of the loop (``time/fps`` at the last
+batch: collection plus updates, before the final evaluation) and each method's ratio to the
+base's, and the five metrics of each deterministic actor, beside a uniform-random policy on the
+same scenarios. Run it under ``/work/tools/timed``-like isolation: the frames/s are only
+comparable within one run.
 """
 
 from __future__ import annotations
@@ -57,12 +59,15 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=8192)
     p.add_argument("--env", default="shaped", help="conf/env group: shaped adds SPEC §10's learning aids")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "wang_vs_ppo.json"))
-    p.add_argument("overrides", nargs="*", help="extra Hydra overrides for both runs (e.g. trainer.env_batch_size=32)")
+    p.add_argument("--base", default="ppo", help="the +exp= every method's frames/s is divided by")
+    p.add_argument("--methods", nargs="+", default=["wang"], help="+exp= names run after the base")
+    p.add_argument("--out", default=None, help="default: benchmarks/<first method>_vs_<base>.json")
+    p.add_argument("overrides", nargs="*", help="extra Hydra overrides for every run (e.g. trainer.env_batch_size=32)")
     a = p.parse_args()
+    out_file = Path(a.out) if a.out else ROOT / "benchmarks" / f"{a.methods[0]}_vs_{a.base}.json"
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for method in ("ppo", "wang"):
+        for method in (a.base, *a.methods):
             run_dir = Path(tmp) / method
             cmd = [
                 sys.executable, "-m", "uavlae.train", f"+exp={method}", f"env={a.env}", f"seed={a.seed}",
@@ -93,12 +98,12 @@ def main() -> None:
         "eval_set": str(EVAL_SET.relative_to(ROOT)),
         "runs": runs,
         "uniform_random": {k: random_agg[k] for k in PAPER_METRICS},
-        "fps_ratio_wang_over_ppo": runs["wang"]["train_fps"] / runs["ppo"]["train_fps"],
-        "command": "python benchmarks/wang_vs_ppo.py " + " ".join(sys.argv[1:]),
+        **{f"fps_ratio_{m}_over_{a.base}": runs[m]["train_fps"] / runs[a.base]["train_fps"] for m in a.methods},
+        "command": "python benchmarks/vs_ppo.py " + " ".join(sys.argv[1:]),
         "machine": describe_machine(),
     }
-    dump_json(Path(a.out), out)
-    print(json.dumps({k: out[k] for k in ("fps_ratio_wang_over_ppo", "uniform_random")}, indent=1))
+    dump_json(out_file, out)
+    print(json.dumps({k: v for k, v in out.items() if k.startswith("fps_ratio") or k == "uniform_random"}, indent=1))
 
 
 if __name__ == "__main__":
