@@ -2,7 +2,7 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/follow_direction.py
 
-on the 32 saved evaluation scenarios of ``results/paper_table_eval_set.json`` with ``env=shaped``
+on the 32 saved evaluation scenarios of ``results/eval_set_32.json`` with ``env=shaped``
 (straight-line direction), ``env=shaped_geodesic`` (the way around BZs and NFZs, the clearance
 as walls) and ``env=shaped_geodesic_soft`` (the clearance passable at a cost), through the same
 ``uavlae.evaluate.Evaluator`` as every learner, then the two geodesic variants on 256 scenarios
@@ -34,7 +34,7 @@ def main() -> None:
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import Evaluator
 
-    scenarios = load_scenarios(ROOT / "results" / "paper_table_eval_set.json")
+    scenarios = load_scenarios(ROOT / "results" / "eval_set_32.json")
 
     def follow(td):
         td.set("action", td.get("observation")[..., -6:-4])  # the direction column (ego_features)

@@ -4,8 +4,8 @@
     python benchmarks/vs_ppo.py --methods theile --frames 8192   # make bench-theile -> benchmarks/theile_vs_ppo.json
 
 Each method is one ``python -m uavlae.train +exp=METHOD`` subprocess, the base first, one after
-the other, with the same seed, world, frame budget and evaluation set (the paper table's 32
-scenarios). Reported side by side: the training frames/s of the loop (``time/fps`` at the last
+the other, with the same seed, world, frame budget and evaluation set (the 32
+scenarios of results/eval_set_32.json). Reported side by side: the training frames/s of the loop (``time/fps`` at the last
 batch: collection plus updates, before the final evaluation) and each method's ratio to the
 base's, and the five metrics of each deterministic actor, beside a uniform-random policy on the
 same scenarios. Run it under ``/work/tools/timed``-like isolation: the frames/s are only
@@ -34,7 +34,7 @@ from uavlae.files import dump_json
 from uavlae.machine import describe_machine
 
 ROOT = Path(__file__).resolve().parents[1]
-EVAL_SET = ROOT / "results" / "paper_table_eval_set.json"
+EVAL_SET = ROOT / "results" / "eval_set_32.json"
 
 
 class UniformRandom(torch.nn.Module):

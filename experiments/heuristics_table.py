@@ -5,7 +5,9 @@
 Each (method, evaluation set) is one ``python -m uavlae.train +exp=METHOD`` subprocess (the
 evaluation-only controllers: no training) with ``trainer.eval_set`` pointing at the set:
 
-- the paper table's fixed 32 scenarios (``results/paper_table_eval_set.json``);
+- the 32 fixed scenarios every training run is evaluated on by default (``results/eval_set_32.json``:
+  SPEC's world, ``trainer.eval_episodes`` = 32, ``trainer.eval_seed`` = 12345; the first run that
+  names a missing set samples and saves it; the sweeps' ``eval_sets/train.json`` is the same set);
 - 256 scenarios sampled with ``--sample-seed`` and saved once to
   ``results/heuristics_eval_set_256.json``.
 
@@ -55,7 +57,7 @@ def main() -> None:
     p.add_argument("--sample-seed", type=int, default=2026)
     p.add_argument("--eval-seed", type=int, default=12345, help="seeds the evaluation env (OU motion)")
     a = p.parse_args()
-    sets = {"paper_table_32": RESULTS / "paper_table_eval_set.json", f"sampled_{a.sampled}": _sampled_set(a.sampled, a.sample_seed)}
+    sets = {"eval_set_32": RESULTS / "eval_set_32.json", f"sampled_{a.sampled}": _sampled_set(a.sampled, a.sample_seed)}
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for set_name, set_path in sets.items():

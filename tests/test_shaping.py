@@ -192,7 +192,7 @@ def test_following_the_geodesic_direction_never_enters_a_zone():
 
     from uavlae.envs.scenario import load_scenarios
 
-    sc = load_scenarios(Path(__file__).parents[1] / "results" / "paper_table_eval_set.json")[:16]
+    sc = load_scenarios(Path(__file__).parents[1] / "results" / "eval_set_32.json")[:16]
     env = UAVEnv(GEO, batch_size=[len(sc)], seed=1, scenarios=sc)
     td = env.reset()
     alive = torch.ones(len(sc), dtype=torch.bool)
