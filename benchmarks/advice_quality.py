@@ -84,7 +84,7 @@ LLM_VARIANTS = {"llm": {},  # the default (conf/llm/local.yaml)
                 "llm_verbose_grammar": {**PAPER, "grammar_style": "verbose"},  # spaces, two decimals
                 "llm_json_schema": {**PAPER, "response_format": "json_schema"},
                 # and whether the model answers the state or copies part (c)'s example
-                "llm_placeholder": {"example": "placeholder"},
+                # (llm itself: example placeholder)
                 "llm_no_example": {"example": "none"},
                 "llm_reasoning_first": {**PAPER, "reasoning_first": True},
                 **{f"llm_{a}": {**PAPER, "prompt_ablation": a} for a in ("no_safety", "no_compliance", "no_data", "no_energy")}}
@@ -337,7 +337,8 @@ def table(results: dict[str, Any]) -> str:
                      for k, _, fmt in COLUMNS]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
         lines.append("")
-    for ref_name, what in (("llm", "the default"), ("llm_verbose", "the earlier default")):
+    for ref_name, what in (("llm", "the default"), ("llm_verbose", "the earlier default"),
+                           ("llm_paper_example", "the prompt each variant changes one setting of")):
         if ref_name not in adv:
             continue
         lines += [f"## Each LLM prompt against {what} (`{ref_name}`), state by state", "",

@@ -90,7 +90,8 @@ def test_slot_affinity_keeps_each_episodes_prefix_cached():
     with local_server(n_threads=1, n_parallel=2, ctx_per_slot=2048) as srv:
         for affinity in (False, True):  # without first: a fresh server, no leftover prompts
             calls = []
-            cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity)
+            # the paper's example: SmolLM2's first answers are valid, one call per state
+            cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity, example="paper")
             with LLMAdvisor(cfg, base_url=srv.base_url) as adv:
                 adv.on_call = calls.append
                 for s in (a, b, a2):

@@ -263,6 +263,8 @@ def test_presets_load_and_local_is_the_default():
     assert make_llm_config("local") == LLMConfig() == make_llm_config()
     ds = make_llm_config("deepseek")
     assert ds.response_format == "json_object" and ds.api_key_env == "DEEPSEEK_API_KEY"
+    # SmolLM2 gets a format-only example (it copies numbers); the remote presets the paper's prompt
+    assert LLMConfig().example == "placeholder" and ds.example == make_llm_config("openai_compatible").example == "paper"
 
 
 def test_yaml_mirrors_the_model_and_holds_no_key():

@@ -64,8 +64,9 @@ class LLMConfig(StrictModel):
     response_format: ResponseFormat = "grammar"  # the local llama.cpp default; remote presets set their own
     observation: Observation = "compact"  # the prompt's observation style (uavlae.llm.prompt)
     # part (c)'s example answer: the paper's numbers, a format-only placeholder, or none (the keys
-    # are named instead); a small model copies a numeric example (benchmarks/advice_quality.md)
-    example: Example = "paper"
+    # are named instead); SmolLM2 copies a numeric example into most answers and scores better
+    # without one (benchmarks/advice_quality.md)
+    example: Example = "placeholder"
     reasoning_first: bool = False  # the answer opens with its (bounded) Reasoning, then vx, vy, Confidence
     # response_format grammar: templates/action_compact.gbnf or action.gbnf (spaces, two
     # decimals); auto: the one of the observation style
