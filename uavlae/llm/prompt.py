@@ -38,14 +38,15 @@ EXAMPLE_KINDS = ("paper", "placeholder", "none")
 # part (c)'s example answer, field by field: the paper's numbers (and the compact style's short
 # Reasoning), or a placeholder that shows only the format. A small model copies a numeric
 # example into most answers (benchmarks/advice_quality.md), hence the other two kinds.
+PAPER_EXAMPLE_VELOCITY = (4.2, 1.6)  # (vx, vy) of the paper's example answer, m/s
+_VX, _VY = (str(v) for v in PAPER_EXAMPLE_VELOCITY)
 _EXAMPLE_FIELDS = {
-    ("paper", "verbose"): {"vx": "4.2", "vy": "1.6", "Confidence": "0.86",
+    ("paper", "verbose"): {"vx": _VX, "vy": _VY, "Confidence": "0.86",
                            "Reasoning": '"Moves toward GE with remaining data, avoids NFZ/OUs/buildings, and respects RZ."'},
-    ("paper", "compact"): {"vx": "4.2", "vy": "1.6", "Confidence": "0.9", "Reasoning": '"toward GE, clear of zones"'},
+    ("paper", "compact"): {"vx": _VX, "vy": _VY, "Confidence": "0.9", "Reasoning": '"toward GE, clear of zones"'},
     ("placeholder", "verbose"): {"vx": "<number>", "vy": "<number>", "Confidence": "<number>", "Reasoning": '"<text>"'},
 }
 _EXAMPLE_FIELDS[("placeholder", "compact")] = _EXAMPLE_FIELDS[("placeholder", "verbose")]
-PAPER_EXAMPLE_VELOCITY = (4.2, 1.6)  # (vx, vy) of the paper's example answer, m/s
 ABLATIONS = {"none": None, "no_safety": "safety", "no_compliance": "compliance", "no_data": "data",
              "no_energy": "energy"}
 
