@@ -76,14 +76,16 @@ bench-llm-breakdown: $(STAMP)
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part concurrency
 
 # What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics
-# -> benchmarks/advice_quality.json and .md (the LLM runs take about 15 min on one core each;
+# -> benchmarks/advice_quality.json and .md: every advisor on all 200 states, then on the first 40
+# the prompt variants that tell what the gap to llm_verbose is and what the example answer does,
+# and the paper's ablations (the LLM runs take 10-35 min on one core each;
 # ADVICE_ARGS="--advisors actor --actor FILE.pt2" scores a trained actor on the same states)
 .PHONY: bench-advice
-ADVICE_ARGS ?= --advisors heuristic hover random llm llm_verbose
+ADVICE_ARGS ?= --advisors heuristic hover random llm llm_verbose llm_paper_example
 bench-advice: $(STAMP)
 	$(BIN)/python benchmarks/advice_quality.py $(ADVICE_ARGS)
-	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_no_safety llm_no_compliance llm_no_data \
-		llm_no_energy
+	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_json_schema llm_verbose_grammar llm_no_example \
+		llm_no_safety llm_no_compliance llm_no_data llm_no_energy
 
 # Training frames/s and metrics of +exp=wang beside +exp=ppo at one frame budget -> benchmarks/wang_vs_ppo.json
 .PHONY: bench-wang

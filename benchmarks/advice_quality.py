@@ -15,15 +15,27 @@ them meet the same OU motion. Scores per advisor (fractions of its states):
 - ``valid``: answers that passed the extractor (a failed one is scored as a hover);
 - ``latency_p50_s``/``latency_p95_s`` per answer, and the LLM's tokens per call.
 
-Advisors: ``llm`` (the local LLM, compact prompt), ``llm_verbose`` (the earlier default: the
-longer observation, ``json_schema``, a 200-character Reasoning), ``llm_json_schema`` and
-``llm_verbose_grammar`` (one of those two changes each), ``llm_no_safety``/``llm_no_compliance``/``llm_no_data``/``llm_no_energy`` (the
-paper's ablations), ``heuristic``, ``hover``, ``random`` (uniform in the speed disc), ``actor``
-(an exported actor, ``--actor FILE.pt2``) and ``endpoint`` (any OpenAI-compatible server,
-``--endpoint PRESET_OR_YAML``). LLM advisors run with the advice cache off. Results of separate
-runs merge into ``benchmarks/advice_quality.json`` (per advisor) and the table
+- ``paper_example``: answers that are the velocity of the paper's example answer (4.2, 1.6) m/s
+  (a model that copies part (c)'s example), ``top_answer``: the share of the most common answer;
+  ``calls``: HTTP calls per state (more than one: an answer was rejected and asked again).
+
+Advisors: ``llm`` (the local LLM with conf/llm/local.yaml), ``llm_verbose`` (the earlier
+default: the longer observation, ``json_schema``, a 200-character Reasoning), and variants one
+setting away from the compact prompt with the paper's example (``llm_paper_example``): what
+makes the gap to ``llm_verbose`` (``llm_verbose_obs``, ``llm_verbose_grammar``,
+``llm_json_schema``), what the example answer does (``llm_placeholder``: a format-only
+example, ``llm_no_example``, ``llm_reasoning_first``: the Reasoning before the action), the
+paper's ablations (``llm_no_safety``/``llm_no_compliance``/``llm_no_data``/``llm_no_energy``);
+``LLM_VARIANTS`` holds each one's settings. Then ``heuristic``, ``hover``, ``random`` (uniform
+in the speed disc), ``actor`` (an exported actor, ``--actor FILE.pt2``) and ``endpoint`` (any
+OpenAI-compatible server, ``--endpoint PRESET_OR_YAML``). LLM advisors run with the advice
+cache off. Every state is stepped in one batch with the whole set (the states beyond ``--n``
+hover), so a state meets the same draws in every run. Results of separate runs, also of two
+at once, merge into ``benchmarks/advice_quality.json`` (per advisor) and the table
 ``benchmarks/advice_quality.md``; an advisor run on the first N states only (``--n``) is also
-compared there with every other advisor on those same N states.
+compared there with every other advisor on those same N states, each LLM prompt state by state
+against ``llm`` and ``llm_verbose`` (paired 95% bootstrap intervals). ``--rescore`` scores the
+stored answers again (no advisor is asked).
 
     python benchmarks/advice_quality.py --collect
     python benchmarks/advice_quality.py --advisors heuristic hover random llm
@@ -37,6 +49,7 @@ import hashlib
 import math
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable
 
@@ -50,6 +63,7 @@ from uavlae.envs import UAVEnv, make_env_config  # noqa: E402
 from uavlae.envs.world import current_target  # noqa: E402
 from uavlae.files import atomic_write, dump_json  # noqa: E402
 from uavlae.llm import Advice, LLMAdvisor, WorldLimits, advisor_states_from_tensordict, make_llm_config  # noqa: E402
+from uavlae.llm.prompt import PAPER_EXAMPLE_VELOCITY  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
 from uavlae.policies.heuristic import HeuristicPolicy  # noqa: E402
 
@@ -58,12 +72,22 @@ OUT = ROOT / "benchmarks" / "advice_quality.json"
 TABLE = ROOT / "benchmarks" / "advice_quality.md"
 KINDS = ("bz", "nfz", "rz", "ou")
 EVENTS = ("bz_collision", "nfz_entry", "ou_collision", "rz_speeding", "boundary_exit")
-LLM_VARIANTS = {"llm": {}, "llm_verbose": {"observation": "verbose", "reasoning_max_chars": 200,
-                                           "response_format": "json_schema", "max_tokens": 160},
-                # which of the two differences matters: the observation or the output format
-                "llm_json_schema": {"response_format": "json_schema"},
-                "llm_verbose_grammar": {"observation": "verbose"},
-                **{f"llm_{a}": {"prompt_ablation": a} for a in ("no_safety", "no_compliance", "no_data", "no_energy")}}
+# LLM config overrides of each advisor; every one is one setting away from the compact prompt
+# with the paper's example answer (llm_paper_example), so that each names what it changes
+PAPER = {"example": "paper"}
+LLM_VARIANTS = {"llm": {},  # the default (conf/llm/local.yaml)
+                "llm_verbose": {**PAPER, "observation": "verbose", "reasoning_max_chars": 200,
+                                "response_format": "json_schema", "max_tokens": 160},  # the earlier default
+                "llm_paper_example": PAPER,
+                # which difference to llm_verbose matters
+                "llm_verbose_obs": {**PAPER, "observation": "verbose"},  # with its part (c) style and grammar
+                "llm_verbose_grammar": {**PAPER, "grammar_style": "verbose"},  # spaces, two decimals
+                "llm_json_schema": {**PAPER, "response_format": "json_schema"},
+                # and whether the model answers the state or copies part (c)'s example
+                # (llm itself: example placeholder)
+                "llm_no_example": {"example": "none"},
+                "llm_reasoning_first": {**PAPER, "reasoning_first": True},
+                **{f"llm_{a}": {**PAPER, "prompt_ablation": a} for a in ("no_safety", "no_compliance", "no_data", "no_energy")}}
 ADVISORS = (*LLM_VARIANTS, "heuristic", "hover", "random", "actor", "endpoint")
 
 
@@ -166,13 +190,22 @@ def score(env: UAVEnv, state: TensorDict, action: torch.Tensor, hold: int, seed:
     return res
 
 
+def score_first(env: UAVEnv, full: TensorDict, action: torch.Tensor, hold: int, seed: int) -> dict[str, torch.Tensor]:
+    """:func:`score` of answers to the first ``len(action)`` states, stepped in one batch with
+    the whole set (the rest hover), so that a state meets the same draws whatever ``--n`` is."""
+    n = action.shape[0]
+    padded = torch.zeros(full.batch_size[0], 2)
+    padded[:n] = action
+    return {k: v[:n] for k, v in score(env, full, padded, hold, seed).items()}
+
+
 # ------------------------------------------------------------------ advisors
 def llm_answers(state: TensorDict, env_cfg: Any, cfg: Any, log_every: int = 25) -> dict[str, Any]:
     limits = WorldLimits.from_env_config(env_cfg)
     states = advisor_states_from_tensordict(TensorDict({"state": state}, batch_size=state.batch_size),
                                             list(range(state.batch_size[0])), limits)
     action = torch.zeros(len(states), 2)
-    valid, latency, ptok, ctok = [], [], [], []
+    valid, latency, ptok, cached, ctok, calls, rejected = [], [], [], [], [], [], Counter()
     with LLMAdvisor(cfg) as adv:
         adv.advise_sync(states[:1])  # starts the server outside the timing; not scored
         for i, s in enumerate(states):
@@ -182,6 +215,9 @@ def llm_answers(state: TensorDict, env_cfg: Any, cfg: Any, log_every: int = 25) 
             latency.append(time.perf_counter() - t0)
             snap = adv.stats.snapshot()
             ptok.append(snap["prompt_tokens"])
+            cached.append(snap["cached_prompt_tokens"])
+            calls.append(snap["calls"])  # more than one: answers rejected and asked again
+            rejected.update({k.split("/", 1)[1]: int(v) for k, v in snap.items() if k.startswith("rejected/")})
             ctok.append(snap["completion_tokens"])
             valid.append(isinstance(r, Advice))
             if isinstance(r, Advice):
@@ -189,7 +225,7 @@ def llm_answers(state: TensorDict, env_cfg: Any, cfg: Any, log_every: int = 25) 
             if log_every and (i + 1) % log_every == 0:
                 print(f"  {i + 1}/{len(states)} answered, last {latency[-1]:.2f} s", flush=True)
     return {"action": action.clamp(-1, 1), "valid": valid, "latency": latency, "prompt_tokens": ptok,
-            "completion_tokens": ctok}
+            "cached_prompt_tokens": cached, "completion_tokens": ctok, "calls": calls, "rejected": dict(rejected)}
 
 
 def timed(fn: Callable[[], torch.Tensor], n: int) -> dict[str, Any]:
@@ -241,9 +277,21 @@ def summarise(per_state: dict[str, list[float]], idx: list[int]) -> dict[str, fl
             s = sorted(vals)
             out["latency_p50_s"] = s[len(s) // 2]
             out["latency_p95_s"] = s[min(len(s) - 1, int(0.95 * len(s)))]
-        elif k in ("valid", "prompt_tokens", "completion_tokens") or k.endswith(("_1", "_H", "_m")):
+        elif k in ("valid", "prompt_tokens", "cached_prompt_tokens", "completion_tokens", "calls",
+                   "paper_example") or k.endswith(("_1", "_H", "_m")):
             out[k] = sum(float(x) for x in vals) / len(vals)
     return out
+
+
+def paper_example_flags(actions: list[list[float]], v_max: float) -> list[float]:
+    """1.0 where the answer is the velocity of the paper's example answer (4.2, 1.6) m/s."""
+    ex = PAPER_EXAMPLE_VELOCITY
+    return [float(abs(a[0] * v_max - ex[0]) < 1e-3 and abs(a[1] * v_max - ex[1]) < 1e-3) for a in actions]
+
+
+def top_answer_share(actions: list[list[float]]) -> float:
+    """The fraction of the states given the most common answer (1.0: one answer for all)."""
+    return Counter(tuple(a) for a in actions).most_common(1)[0][1] / len(actions) if actions else math.nan
 
 
 COLUMNS = [("valid", "valid", "{:.2f}"), ("any_violation_1", "viol. 1 slot", "{:.3f}"),
@@ -251,8 +299,9 @@ COLUMNS = [("valid", "valid", "{:.2f}"), ("any_violation_1", "viol. 1 slot", "{:
            ("nfz_entry_H", "NFZ", "{:.3f}"), ("ou_collision_H", "OU", "{:.3f}"),
            ("rz_speeding_H", "RZ speed", "{:.3f}"), ("boundary_exit_H", "boundary", "{:.3f}"),
            ("progress_1_m", "progress 1 (m)", "{:+.2f}"), ("progress_H_m", "progress H (m)", "{:+.2f}"),
-           ("latency_p50_s", "p50 s", "{:.3g}"), ("prompt_tokens", "prompt tok", "{:.0f}"),
-           ("completion_tokens", "compl. tok", "{:.0f}")]
+           ("paper_example", "= example", "{:.3f}"), ("top_answer", "top answer", "{:.3f}"),
+           ("calls", "calls", "{:.2f}"), ("latency_p50_s", "p50 s", "{:.3g}"), ("prompt_tokens", "prompt tok", "{:.0f}"),
+           ("cached_prompt_tokens", "of them cached", "{:.0f}"), ("completion_tokens", "compl. tok", "{:.0f}")]
 
 
 def paired(a: list[float], b: list[float], seed: int = 0, draws: int = 2000) -> tuple[float, float, float]:
@@ -270,7 +319,9 @@ def table(results: dict[str, Any]) -> str:
     lines = [f"# Advice quality on {results['states']['n']} saved triggered states "
              f"({results['states']['kinds']}; H = {hold} slots held)", "",
              "Fractions of states with the event (H: within the held slots); progress toward the "
-             "current target in metres; `python benchmarks/advice_quality.py` (see its docstring). The "
+             "current target in metres; `= example`: answers that are the velocity of the paper's example "
+             "answer (4.2, 1.6) m/s; `top answer`: the share of the most common answer; "
+             "`python benchmarks/advice_quality.py` (see its docstring). The "
              "latencies here come from runs beside other jobs; the timed ones are in "
              "`benchmarks/llm_call_breakdown.json`.", ""]
     sizes = sorted({a["n_states"] for a in adv.values()}, reverse=True)
@@ -281,18 +332,22 @@ def table(results: dict[str, Any]) -> str:
                   "|---" * (len(COLUMNS) + 1) + "|"]
         for name in names:
             s = summarise(adv[name]["per_state"], list(range(size)))
+            s["top_answer"] = top_answer_share(adv[name]["actions"][:size])
             cells = [fmt.format(s[k]) if k in s and not (isinstance(s[k], float) and math.isnan(s[k])) else "-"
                      for k, _, fmt in COLUMNS]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
         lines.append("")
-    if "llm" in adv:
-        lines += ["## Each LLM prompt against the default (`llm`), state by state", "",
-                  "Mean difference (other - llm) over the states both answered, with a 95% bootstrap "
+    for ref_name, what in (("llm", "the default"), ("llm_verbose", "the earlier default"),
+                           ("llm_paper_example", "the prompt each variant changes one setting of")):
+        if ref_name not in adv:
+            continue
+        lines += [f"## Each LLM prompt against {what} (`{ref_name}`), state by state", "",
+                  f"Mean difference (other - {ref_name}) over the states both answered, with a 95% bootstrap "
                   "interval; a cheaper prompt must not be worse: violations not higher, progress not lower.", "",
                   "| advisor | states | Δ viol. H slots | Δ progress H (m) | answers that differ |", "|---|---|---|---|---|"]
-        ref = adv["llm"]
+        ref = adv[ref_name]
         for name, a in adv.items():
-            if name == "llm" or not name.startswith("llm"):
+            if name == ref_name or not name.startswith("llm"):
                 continue
             n = min(a["n_states"], ref["n_states"])
             cells = []
@@ -320,6 +375,8 @@ def main() -> None:
     ap.add_argument("--llm", default="local", help="LLM preset or YAML for the llm* advisors")
     ap.add_argument("--endpoint", default=None, help="preset or YAML of an OpenAI-compatible endpoint")
     ap.add_argument("--actor", default=None, help="an actor exported by python -m uavlae.export")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score every stored advisor again from its stored answers (no advisor is asked)")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--table", default=str(TABLE))
     args = ap.parse_args()
@@ -329,13 +386,13 @@ def main() -> None:
     path = Path(args.states)
     if not path.is_file():
         raise SystemExit(f"no saved states at {path}: run `python benchmarks/advice_quality.py --collect` first")
-    state, meta, digest = load_states(path)
-    if args.n is not None:
-        if not 1 <= args.n <= state.batch_size[0]:
-            raise SystemExit(f"--n must be in [1, {state.batch_size[0]}], got {args.n}")
-        state = state[: args.n]
+    full, meta, digest = load_states(path)
+    if args.n is not None and not 1 <= args.n <= full.batch_size[0]:
+        raise SystemExit(f"--n must be in [1, {full.batch_size[0]}], got {args.n}")
+    state = full[: args.n] if args.n is not None else full
     n = state.batch_size[0]
-    env = UAVEnv(make_env_config(None), batch_size=n, seed=args.seed)
+    # always the whole set in one batch: the env's draws for a state do not depend on --n
+    env = UAVEnv(make_env_config(None), batch_size=full.batch_size[0], seed=args.seed)
     out_path = Path(args.out)
     import json
 
@@ -348,23 +405,43 @@ def main() -> None:
                                "n": len(meta["kind"]), "kinds": kinds, "sha256_16": digest, "d_th": meta["d_th"]},
                     "machine": describe_machine()})
     results.setdefault("advisors", {})
+    if args.rescore:
+        for name, entry in results["advisors"].items():
+            k = entry["n_states"]
+            sc = score_first(env, full, torch.tensor(entry["actions"]), args.hold, args.seed)
+            entry["per_state"].update({key: v.tolist() for key, v in sc.items()})
+            entry["per_state"]["paper_example"] = paper_example_flags(entry["actions"], env.cfg.motion.v_max)
+            entry["summary"] = {**summarise(entry["per_state"], list(range(k))),
+                                "top_answer": top_answer_share(entry["actions"])}
+            entry["rescored"] = "python benchmarks/advice_quality.py " + " ".join(sys.argv[1:])
+        dump_json(out_path, results)
+        args.advisors = []
     for name in args.advisors:
         print(f"{name}: answering {n} states", flush=True)
         t0 = time.perf_counter()
         ans = answers(name, state, env, args)
-        sc = score(env, state, ans["action"], args.hold, args.seed)
+        sc = score_first(env, full, ans["action"], args.hold, args.seed)
         per_state = {k: v.tolist() for k, v in sc.items()}
-        per_state.update({k: list(ans[k]) for k in ("valid", "latency", "prompt_tokens", "completion_tokens")
-                          if k in ans})
+        per_state.update({k: list(ans[k]) for k in ("valid", "latency", "prompt_tokens", "cached_prompt_tokens",
+                                                     "completion_tokens", "calls") if k in ans})
+        actions = [[round(x, 4) for x in a] for a in ans["action"].tolist()]
+        per_state["paper_example"] = paper_example_flags(actions, env.cfg.motion.v_max)
         entry = {"n_states": n, "wall_s": round(time.perf_counter() - t0, 1),
                  "command": "python benchmarks/advice_quality.py " + " ".join(sys.argv[1:]),
                  "summary": summarise(per_state, list(range(n))), "per_state": per_state,
-                 "actions": [[round(x, 4) for x in a] for a in ans["action"].tolist()]}
+                 "llm_overrides": LLM_VARIANTS.get(name), "rejected": ans.get("rejected"), "actions": actions}
+        entry["summary"]["top_answer"] = top_answer_share(actions)
         results["advisors"][name] = entry
-        dump_json(out_path, results)  # after each advisor: a long run keeps what it finished
+        # after each advisor (a long run keeps what it finished), over what another run beside
+        # this one wrote there meanwhile
+        now = json.loads(out_path.read_text()) if out_path.is_file() else {}
+        if now.get("states", {}).get("sha256_16") == digest and now.get("hold") == args.hold:
+            results["advisors"] = {**now.get("advisors", {}), name: entry}
+        dump_json(out_path, results)
         s = entry["summary"]
         print(f"  {name}: valid {s['valid']:.2f}, violation(H) {s['any_violation_H']:.3f}, "
-              f"progress(H) {s['progress_H_m']:+.2f} m, p50 {s['latency_p50_s']:.3g} s", flush=True)
+              f"progress(H) {s['progress_H_m']:+.2f} m, = example {s['paper_example']:.3f}, "
+              f"p50 {s['latency_p50_s']:.3g} s", flush=True)
     text = table(results) + "\n"
     atomic_write(args.table, lambda fh: fh.write(text.encode("utf-8")))
     print(table(results))

@@ -55,7 +55,8 @@ STATES = ROOT / "benchmarks" / "advice_states.pt"
 # LLM config overrides ("server.x" reaches the server's settings); "default" is conf/llm/local.yaml
 SETTINGS: dict[str, dict[str, Any]] = {
     "default": {},
-    "previous_default": {"observation": "verbose", "response_format": "json_schema", "reasoning_max_chars": 200,
+    "paper_example": {"example": "paper"},  # the default until the example became a placeholder
+    "previous_default": {"example": "paper", "observation": "verbose", "response_format": "json_schema", "reasoning_max_chars": 200,
                          "max_tokens": 160, "slot_affinity": False, "server.n_parallel": 1,
                          "server.ctx_per_slot": 4096},
     "one_slot_no_affinity": {"slot_affinity": False, "server.n_parallel": 1},

@@ -52,3 +52,19 @@ def test_the_same_seed_gives_every_advisor_the_same_draws():
     a = torch.rand(n, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
     one, two = aq.score(env, state, a, 3, seed=5), aq.score(env, state, a, 3, seed=5)
     assert all(torch.equal(one[k], two[k]) for k in one)
+
+
+def test_parroting_counts_answers_equal_to_the_papers_example():
+    # actions are v / v_max with v_max = 10: (0.42, 0.16) is the example's (4.2, 1.6) m/s
+    acts = [[0.42, 0.16], [0.42, 0.16], [0.42, -0.16], [0.0, 0.0], [0.42, 0.16]]
+    assert aq.paper_example_flags(acts, 10.0) == [1.0, 1.0, 0.0, 0.0, 1.0]
+    assert aq.top_answer_share(acts) == 3 / 5
+    assert aq.paper_example_flags([[0.84, 0.32]], 5.0) == [1.0]  # the same speed at another v_max
+
+
+def test_paired_interval_is_of_the_difference_state_by_state():
+    a = [0.0, 1.0, 2.0, 3.0]
+    mean, lo, hi = aq.paired(a, [x + 0.5 for x in a])  # every state gains 0.5: no spread at all
+    assert (mean, lo, hi) == (0.5, 0.5, 0.5)
+    mean, lo, hi = aq.paired([0.0] * 4, [1.0, -1.0, 1.0, -1.0])
+    assert mean == 0.0 and -1.0 <= lo < 0.0 < hi <= 1.0

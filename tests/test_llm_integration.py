@@ -90,7 +90,8 @@ def test_slot_affinity_keeps_each_episodes_prefix_cached():
     with local_server(n_threads=1, n_parallel=2, ctx_per_slot=2048) as srv:
         for affinity in (False, True):  # without first: a fresh server, no leftover prompts
             calls = []
-            cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity)
+            # the paper's example: SmolLM2's first answers are valid, one call per state
+            cfg = make_llm_config("local", cache_mode="off", slot_affinity=affinity, example="paper")
             with LLMAdvisor(cfg, base_url=srv.base_url) as adv:
                 adv.on_call = calls.append
                 for s in (a, b, a2):
@@ -101,3 +102,40 @@ def test_slot_affinity_keeps_each_episodes_prefix_cached():
     assert on[1] >= 400  # the ~480-token system prompt, restored into slot 1, not evaluated
     assert on[2] >= on[1] + 100  # A's zones and GEs (11+ GEs of 8+ tokens each) came back too
     assert off[2] < on[2] - 100  # without affinity B's call had overwritten A's prefix
+
+
+@pytest.mark.parametrize("fmt", ["grammar", "json_schema"])
+def test_reasoning_first_answers_open_with_the_reasoning(llm_server, fmt):
+    from uavlae.llm import example_states
+
+    texts = []
+    cfg = make_llm_config("local", cache_mode="off", response_format=fmt, reasoning_first=True,
+                          example="placeholder", **SHORT)
+    with LLMAdvisor(cfg, base_url=llm_server.base_url) as adv:
+        adv.on_call = lambda res: texts.append(res.text)
+        (r,) = adv.advise_sync(example_states(1, LIM, seed=5), timeout=240)
+    assert isinstance(r, Advice), r
+    assert texts[0].lstrip("{ \n").startswith('"Reasoning"'), texts[0]
+    assert len(r.reasoning) <= SHORT["reasoning_max_chars"]
+
+
+@pytest.mark.parametrize("kw", [{"example": "placeholder"}, {"example": "none", "reasoning_first": True}])
+def test_the_whole_system_message_is_reused_by_the_next_state(llm_server, kw):
+    """States of two different maps on the one slot: the second call finds every token of the
+    system message cached, so nothing in it depends on the state or the call."""
+    from uavlae.llm import example_states
+
+    a, b = example_states(2, LIM, seed=21)
+    calls = []
+    cfg = make_llm_config("local", cache_mode="off", **kw, **SHORT)
+    with LLMAdvisor(cfg, base_url=llm_server.base_url) as adv:
+        adv.on_call = calls.append
+        for s in (a, b):
+            (r,) = adv.advise_sync([s], timeout=240)
+            assert isinstance(r, Advice), r
+        system = adv._messages(a)[0]["content"]
+    assert system == adv._messages(b)[0]["content"]
+    root = llm_server.base_url.removesuffix("/v1")
+    n_system = len(httpx.post(root + "/tokenize", json={"content": system}, timeout=30).json()["tokens"])
+    assert n_system > 300
+    assert calls[1].timings["cache_n"] >= n_system  # the chat template's role tokens come on top

@@ -123,6 +123,69 @@ def test_each_ablation_drops_one_guideline(ablation, gone):
     assert "4) " in s and "5) " not in s and gone not in s.split("(b)")[1].split("(c)")[0]
 
 
+def test_placeholder_example_shows_the_format_without_numbers():
+    s = system_prompt(LIM, example="placeholder")
+    last = s.splitlines()[-1]
+    assert last == '{"vx":<number>,"vy":<number>,"Confidence":<number>,"Reasoning":"<text>"}'
+    assert not any(ch.isdigit() for ch in last) and "4.2" not in s
+    spaced = system_prompt(LIM, observation="verbose", example="placeholder").splitlines()[-1]
+    assert spaced == '{"vx": <number>, "vy": <number>, "Confidence": <number>, "Reasoning": "<text>"}'
+
+
+def test_no_example_names_the_keys_in_their_order():
+    s = system_prompt(LIM, example="none")
+    assert s.endswith("(Reasoning at most 40 characters) with the keys vx, vy, Confidence, Reasoning in this order.")
+    assert "{" not in s.split("(c)")[1] and "4.2" not in s
+    first = system_prompt(LIM, example="none", reasoning_first=True)
+    assert first.endswith("with the keys Reasoning, vx, vy, Confidence in this order.")
+
+
+def test_reasoning_first_reorders_example_grammar_and_schema():
+    from uavlae.llm.advisor import action_grammar
+    from uavlae.llm.schema import action_json_schema
+
+    s = system_prompt(LIM, reasoning_first=True)
+    assert s.endswith('{"Reasoning":"toward GE, clear of zones","vx":4.2,"vy":1.6,"Confidence":0.9}')
+    g = action_grammar(make_llm_config("local", reasoning_first=True, reasoning_max_chars=25))
+    assert 'root ::= "{" reasoning sep vx sep vy sep confidence "}"' in g and "{0,25}" in g
+    assert 'root ::= "{" vx sep vy sep confidence sep reasoning "}"' in action_grammar(make_llm_config("local"))
+    schema = action_json_schema(10.0, 40, reasoning_first=True)
+    assert list(schema["properties"]) == schema["required"] == ["Reasoning", "vx", "vy", "Confidence"]
+
+
+def test_grammar_style_picks_the_grammar_apart_from_the_observation():
+    from uavlae.llm.advisor import action_grammar
+
+    compact = action_grammar(make_llm_config("local"))
+    spaced = action_grammar(make_llm_config("local", grammar_style="verbose"))
+    assert spaced == action_grammar(make_llm_config("local", observation="verbose"))
+    assert 'sep ::= ","\n' in compact and 'sep ::= "," ws' in spaced and spaced != compact
+    assert action_grammar(make_llm_config("local", observation="verbose", grammar_style="compact")) == compact
+    # the default settings' messages, and so their cache keys, do not name the grammar
+    assert make_llm_config("local", grammar_style="auto") == make_llm_config("local")
+
+
+@pytest.mark.parametrize("kw", [{}, {"example": "placeholder"}, {"example": "none"}, {"reasoning_first": True},
+                                {"grammar_style": "verbose"}, {"observation": "verbose"},
+                                {"prompt_ablation": "no_energy", "example": "placeholder"}])
+def test_system_message_is_one_exact_prefix_for_every_state(kw):
+    """Two states of different maps, asked twice: the system message never changes, so the
+    server reuses it as a cached prefix in every slot and call."""
+    adv = LLMAdvisor(make_llm_config("local", cache_mode="off", **kw))
+    a, b = _state(), _state(position=(300.0, 10.0), bz=(), ges=(), nfz=((0, 0, 10, 10),))
+    sys_msgs = [adv._messages(s)[0]["content"] for s in (a, b, a, b)]
+    users = [adv._messages(s)[1]["content"] for s in (a, b)]
+    assert len(set(sys_msgs)) == 1 and users[0] != users[1]
+    assert "(a)" in sys_msgs[0] and "(b)" in sys_msgs[0] and "(c)" in sys_msgs[0]
+
+
+def test_unknown_example_kind_is_an_error():
+    from uavlae.llm.prompt import example_answer
+
+    with pytest.raises(ValueError, match="example"):
+        example_answer("compact", "some")
+
+
 def test_unknown_ablation_is_an_error():
     with pytest.raises(ValueError, match="ablation"):
         guidelines(LIM, "no_stability")
@@ -200,6 +263,8 @@ def test_presets_load_and_local_is_the_default():
     assert make_llm_config("local") == LLMConfig() == make_llm_config()
     ds = make_llm_config("deepseek")
     assert ds.response_format == "json_object" and ds.api_key_env == "DEEPSEEK_API_KEY"
+    # SmolLM2 gets a format-only example (it copies numbers); the remote presets the paper's prompt
+    assert LLMConfig().example == "placeholder" and ds.example == make_llm_config("openai_compatible").example == "paper"
 
 
 def test_yaml_mirrors_the_model_and_holds_no_key():
@@ -214,7 +279,9 @@ def test_yaml_mirrors_the_model_and_holds_no_key():
                                        ({"max_attempts": 0}, "max_attempts"),
                                        ({"typo_key": 1}, "typo_key"),
                                        ({"base_url": "ftp://x"}, "base_url"),
-                                       ({"server.n_threads": 0}, "server.n_threads")])
+                                       ({"server.n_threads": 0}, "server.n_threads"),
+                                       ({"example": "numbers"}, "example"),
+                                       ({"grammar_style": "tight"}, "grammar_style")])
 def test_config_errors_name_the_field(bad, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         make_llm_config("local", **bad)

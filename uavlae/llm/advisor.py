@@ -21,6 +21,7 @@ import threading
 import time
 from collections import Counter, OrderedDict, deque
 from dataclasses import replace
+from string import Template
 from typing import Any, Sequence
 
 import httpx
@@ -31,10 +32,20 @@ from .config import LLMConfig, make_llm_config
 from .extractor import extract_action
 from .prompt import build_messages, episode_text, retry_message, template
 from .schema import (Advice, AdviceFailure, CacheMissError, EndpointError, ExtractionError, FailureKind,
-                     action_json_schema)
+                     action_json_schema, answer_keys)
 from .state import AdvisorState, rounded_state
 
 log = logging.getLogger("uavlae.llm")
+
+
+def action_grammar(cfg: LLMConfig) -> str:
+    """The GBNF of ``response_format: grammar``: the file of ``grammar_style`` (auto: of the
+    observation style) with the Reasoning's bound and the keys' order filled in."""
+    style = cfg.observation if cfg.grammar_style == "auto" else cfg.grammar_style
+    gbnf = "action_compact.gbnf" if style == "compact" else "action.gbnf"
+    rule = {"vx": "vx", "vy": "vy", "Confidence": "confidence", "Reasoning": "reasoning"}
+    fields = " sep ".join(rule[k] for k in answer_keys(cfg.reasoning_first))
+    return Template(template(gbnf)).substitute(reasoning_max_chars=cfg.reasoning_max_chars, fields=fields)
 
 
 class AdvisorStats:
@@ -285,15 +296,11 @@ class LLMAdvisor:
         if c.response_format == "json_schema":
             body["response_format"] = {"type": "json_schema", "json_schema": {
                 "name": "uav_action", "strict": True,
-                "schema": action_json_schema(v_max, c.reasoning_max_chars)}}
+                "schema": action_json_schema(v_max, c.reasoning_max_chars, c.reasoning_first)}}
         elif c.response_format == "json_object":
             body["response_format"] = {"type": "json_object"}
         elif c.response_format == "grammar":
-            from string import Template
-
-            gbnf = "action_compact.gbnf" if c.observation == "compact" else "action.gbnf"
-            body["grammar"] = Template(template(gbnf)).substitute(
-                reasoning_max_chars=c.reasoning_max_chars)
+            body["grammar"] = action_grammar(c)
         return body
 
     def request_body(self, state: AdvisorState) -> dict[str, Any]:
@@ -302,11 +309,16 @@ class LLMAdvisor:
 
     def _messages(self, state: AdvisorState) -> list[dict]:
         c = self.cfg
-        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars)
+        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars, c.example,
+                              c.reasoning_first)
 
     def _key(self, messages: list[dict], state: AdvisorState) -> str:
         c = self.cfg
-        extra = {"cache_key_round": c.cache_key_round} if c.cache_key_round else {}
+        extra: dict[str, Any] = {"cache_key_round": c.cache_key_round} if c.cache_key_round else {}
+        if c.grammar_style != "auto":  # not in the messages; keys of the default settings stay as they were
+            extra["grammar_style"] = c.grammar_style
+        if c.reasoning_first:
+            extra["reasoning_first"] = True
         return cache_key({**extra, "model": c.model, "messages": messages, "temperature": c.temperature,
                           "top_p": c.top_p, "max_tokens": c.max_tokens, "seed": c.seed,
                           "response_format": c.response_format,

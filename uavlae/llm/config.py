@@ -17,6 +17,8 @@ CacheMode = Literal["off", "read_write", "replay_only"]
 Ablation = Literal["none", "no_safety", "no_compliance", "no_data", "no_energy"]
 Fallback = Literal["end_episode", "policy", "heuristic"]
 Observation = Literal["compact", "verbose"]
+Example = Literal["paper", "placeholder", "none"]
+GrammarStyle = Literal["auto", "compact", "verbose"]
 FlashAttn = Literal["auto", "on", "off"]
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
@@ -61,6 +63,14 @@ class LLMConfig(StrictModel):
     reasoning_max_chars: int = Field(40, ge=0)  # schema/grammar bound on "Reasoning"
     response_format: ResponseFormat = "grammar"  # the local llama.cpp default; remote presets set their own
     observation: Observation = "compact"  # the prompt's observation style (uavlae.llm.prompt)
+    # part (c)'s example answer: the paper's numbers, a format-only placeholder, or none (the keys
+    # are named instead); SmolLM2 copies a numeric example into most answers and scores better
+    # without one (benchmarks/advice_quality.md)
+    example: Example = "placeholder"
+    reasoning_first: bool = False  # the answer opens with its (bounded) Reasoning, then vx, vy, Confidence
+    # response_format grammar: templates/action_compact.gbnf or action.gbnf (spaces, two
+    # decimals); auto: the one of the observation style
+    grammar_style: GrammarStyle = "auto"
     cache_path: str | None = "~/.cache/uavlae/llm_cache.sqlite"
     cache_mode: CacheMode = "read_write"
     prompt_ablation: Ablation = "none"

@@ -14,6 +14,11 @@ message, in one of two styles:
 - ``verbose``: the earlier observation, which also quotes the energy left and the distances to
   the nearest obstacle of each kind.
 
+Part (c) shows an example answer (``example``): the paper's numbers, a placeholder that gives
+only the format, or none (the keys are named); ``reasoning_first`` orders the answer Reasoning,
+vx, vy, Confidence, so the velocity is decoded after the bounded Reasoning. Each choice is fixed
+for a run, so the system message stays one exact prefix.
+
 Texts live in ``templates/``; every number comes from :class:`~uavlae.llm.state.WorldLimits`
 or the state.
 """
@@ -25,15 +30,23 @@ from functools import lru_cache
 from importlib import resources
 from string import Template
 
+from .schema import answer_keys
 from .state import AdvisorState, Rect, WorldLimits
 
 OBSERVATIONS = ("compact", "verbose")
-# part (c)'s example answer: the paper's, and the same with the compact style's short Reasoning
-EXAMPLES = {
-    "verbose": '{"vx": 4.2, "vy": 1.6, "Confidence": 0.86, "Reasoning": "Moves toward GE with remaining data, '
-               'avoids NFZ/OUs/buildings, and respects RZ."}',
-    "compact": '{"vx":4.2,"vy":1.6,"Confidence":0.9,"Reasoning":"toward GE, clear of zones"}',
+EXAMPLE_KINDS = ("paper", "placeholder", "none")
+# part (c)'s example answer, field by field: the paper's numbers (and the compact style's short
+# Reasoning), or a placeholder that shows only the format. A small model copies a numeric
+# example into most answers (benchmarks/advice_quality.md), hence the other two kinds.
+PAPER_EXAMPLE_VELOCITY = (4.2, 1.6)  # (vx, vy) of the paper's example answer, m/s
+_VX, _VY = (str(v) for v in PAPER_EXAMPLE_VELOCITY)
+_EXAMPLE_FIELDS = {
+    ("paper", "verbose"): {"vx": _VX, "vy": _VY, "Confidence": "0.86",
+                           "Reasoning": '"Moves toward GE with remaining data, avoids NFZ/OUs/buildings, and respects RZ."'},
+    ("paper", "compact"): {"vx": _VX, "vy": _VY, "Confidence": "0.9", "Reasoning": '"toward GE, clear of zones"'},
+    ("placeholder", "verbose"): {"vx": "<number>", "vy": "<number>", "Confidence": "<number>", "Reasoning": '"<text>"'},
 }
+_EXAMPLE_FIELDS[("placeholder", "compact")] = _EXAMPLE_FIELDS[("placeholder", "verbose")]
 ABLATIONS = {"none": None, "no_safety": "safety", "no_compliance": "compliance", "no_data": "data",
              "no_energy": "energy"}
 
@@ -90,15 +103,32 @@ def _check_style(observation: str) -> None:
         raise ValueError(f"prompt observation style must be one of {list(OBSERVATIONS)}, got {observation!r}")
 
 
+def example_answer(observation: str = "compact", example: str = "paper", reasoning_first: bool = False) -> str:
+    """Part (c)'s example answer, spaced as the observation style's grammar writes it."""
+    _check_style(observation)
+    if example not in EXAMPLE_KINDS:
+        raise ValueError(f"prompt example must be one of {list(EXAMPLE_KINDS)}, got {example!r}")
+    if example == "none":
+        return ""
+    fields = _EXAMPLE_FIELDS[(example, observation)]
+    sep = ", " if observation == "verbose" else ","
+    colon = ": " if observation == "verbose" else ":"
+    return "{" + sep.join(f'"{k}"{colon}{fields[k]}' for k in answer_keys(reasoning_first)) + "}"
+
+
 @lru_cache(maxsize=64)
 def system_prompt(lim: WorldLimits, ablation: str = "none", observation: str = "compact",
-                  reasoning_max_chars: int = 40) -> str:
-    """Parts (a)-(c). The compact style states the Reasoning bound (its answers are cut there)."""
+                  reasoning_max_chars: int = 40, example: str = "paper", reasoning_first: bool = False) -> str:
+    """Parts (a)-(c). The compact style states the Reasoning bound (its answers are cut there);
+    without an example (``example="none"``) part (c) names the keys in their order instead."""
     _check_style(observation)
     lines = "\n".join(f"{i}) {g}" for i, g in enumerate(guidelines(lim, ablation), 1))
     bound = f" (Reasoning at most {reasoning_max_chars} characters)" if observation == "compact" else ""
+    answer = example_answer(observation, example, reasoning_first)
+    lead = {"paper": ", for example:\n", "placeholder": ", in this form:\n"}.get(example)
+    shown = (lead + answer if lead else " with the keys " + ", ".join(answer_keys(reasoning_first)) + " in this order.")
     return Template(template("system.txt")).substitute(
-        _limit_vars(lim), guidelines=lines, reasoning_bound=bound, example=EXAMPLES[observation],
+        _limit_vars(lim), guidelines=lines, reasoning_bound=bound, example=shown,
         dcu_state="position, velocity" if observation == "compact" else "position, velocity, energy left").strip()
 
 
@@ -146,10 +176,12 @@ def episode_text(s: AdvisorState) -> str:
 
 
 def build_messages(s: AdvisorState, ablation: str = "none", observation: str = "compact",
-                   reasoning_max_chars: int = 40) -> list[dict[str, str]]:
+                   reasoning_max_chars: int = 40, example: str = "paper",
+                   reasoning_first: bool = False) -> list[dict[str, str]]:
     """The chat messages for one state: system (parts a-c), user (the observation)."""
     return [
-        {"role": "system", "content": system_prompt(s.limits, ablation, observation, reasoning_max_chars)},
+        {"role": "system", "content": system_prompt(s.limits, ablation, observation, reasoning_max_chars,
+                                                    example, reasoning_first)},
         {"role": "user", "content": observation_prompt(s, observation)},
     ]
 

@@ -47,17 +47,25 @@ class ActionSchema(BaseModel):
     Reasoning: str
 
 
-def action_json_schema(v_max: float, reasoning_max_chars: int) -> dict[str, Any]:
-    """JSON schema sent as ``response_format``. Servers may ignore the numeric bounds."""
+def answer_keys(reasoning_first: bool = False) -> tuple[str, ...]:
+    """The answer's keys in the order the grammar, the schema and the prompt's example write them."""
+    return ("Reasoning", "vx", "vy", "Confidence") if reasoning_first else ("vx", "vy", "Confidence", "Reasoning")
+
+
+def action_json_schema(v_max: float, reasoning_max_chars: int, reasoning_first: bool = False) -> dict[str, Any]:
+    """JSON schema sent as ``response_format``. Servers may ignore the numeric bounds. llama.cpp
+    writes the properties in their order here, so ``reasoning_first`` puts the Reasoning first."""
+    props = {
+        "vx": {"type": "number", "minimum": -v_max, "maximum": v_max},
+        "vy": {"type": "number", "minimum": -v_max, "maximum": v_max},
+        "Confidence": {"type": "number", "minimum": 0, "maximum": 1},
+        "Reasoning": {"type": "string", "maxLength": reasoning_max_chars},
+    }
+    order = list(answer_keys(reasoning_first))
     return {
         "type": "object",
-        "properties": {
-            "vx": {"type": "number", "minimum": -v_max, "maximum": v_max},
-            "vy": {"type": "number", "minimum": -v_max, "maximum": v_max},
-            "Confidence": {"type": "number", "minimum": 0, "maximum": 1},
-            "Reasoning": {"type": "string", "maxLength": reasoning_max_chars},
-        },
-        "required": ["vx", "vy", "Confidence", "Reasoning"],
+        "properties": {k: props[k] for k in order},
+        "required": order,
         "additionalProperties": False,
     }
 
