@@ -302,7 +302,7 @@ class LLMAdvisor:
 
     def _messages(self, state: AdvisorState) -> list[dict]:
         c = self.cfg
-        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars)
+        return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars, c.view, c.view_radius)
 
     def _key(self, messages: list[dict], state: AdvisorState) -> str:
         c = self.cfg

@@ -17,6 +17,7 @@ CacheMode = Literal["off", "read_write", "replay_only"]
 Ablation = Literal["none", "no_safety", "no_compliance", "no_data", "no_energy"]
 Fallback = Literal["end_episode", "policy", "heuristic"]
 Observation = Literal["compact", "verbose"]
+View = Literal["full", "local"]
 FlashAttn = Literal["auto", "on", "off"]
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
@@ -61,6 +62,11 @@ class LLMConfig(StrictModel):
     reasoning_max_chars: int = Field(40, ge=0)  # schema/grammar bound on "Reasoning"
     response_format: ResponseFormat = "grammar"  # the local llama.cpp default; remote presets set their own
     observation: Observation = "compact"  # the prompt's observation style (uavlae.llm.prompt)
+    # what the state shows: "full" (every zone, the OUs within the perception radius) or "local"
+    # (the LLM-alone baseline, paper §6.1: only the zones and OUs within view_radius of the DCU,
+    # every GE, and the energy left of E_limit)
+    view: View = "full"
+    view_radius: float = Field(20.0, gt=0)  # m, "local" only (paper: 20 m)
     cache_path: str | None = "~/.cache/uavlae/llm_cache.sqlite"
     cache_mode: CacheMode = "read_write"
     prompt_ablation: Ablation = "none"

@@ -212,7 +212,10 @@ class LLMAdvisorAdapter:
         from uavlae.llm import advisor_states_from_tensordict
 
         n = td_rows.batch_size[0]
-        states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits)
+        cfg = getattr(self.llm, "cfg", None)
+        local = getattr(cfg, "view", "full") == "local"  # the LLM alone: what lies within view_radius
+        states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits,
+                                                view_radius=cfg.view_radius if local else None)
         submit = getattr(self.llm, "submit", None)
         if submit is None:  # an advisor with only the blocking call
             return _Answered(self._actions(self.llm.advise_sync(states, timeout=self.timeout)))
