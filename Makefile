@@ -155,6 +155,19 @@ experiments-llm: $(STAMP)
 		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
 		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
 
+# The LLM alone (+exp=llm) on the evaluation set, one scenario at a time, under a call budget per
+# invocation (the same command continues a paused run), then its metrics and cost ->
+# results/llm_alone.{json,md} (docs/baselines.md, "llm")
+LLM_ALONE_BUDGET ?= 600
+LLM_ALONE_DIR ?= runs/llm_alone
+LLM_ALONE_RUN = +exp=llm run_dir=$(LLM_ALONE_DIR) trainer.eval_chunk=1 trainer.llm_call_budget=$(LLM_ALONE_BUDGET) \
+	llm.cache_path=$(LLM_ALONE_DIR)/llm_cache.sqlite logger.wandb.mode=disabled
+.PHONY: llm-alone
+llm-alone: $(STAMP)
+	$(BIN)/python -m uavlae.train $(LLM_ALONE_RUN)
+	$(BIN)/python -m experiments.llm_alone_table $(LLM_ALONE_DIR) --out results/llm_alone \
+		--command "make llm-alone LLM_ALONE_BUDGET=$(LLM_ALONE_BUDGET)"
+
 experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
 
