@@ -188,7 +188,7 @@ quick: $(STAMP)
 # here), the LLM alone cut at 300 steps an episode (one call a step: 32 x 1000 calls uncut)
 QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=20000 trainer.compile_env=false
 quick-llm: $(STAMP)
-	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS=trainer.eval_max_steps=300
+	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS="trainer.eval_chunk=4 trainer.llm_call_budget=2000"
 	$(MAKE) experiments-report PROFILE=quick
 
 paper: $(STAMP)
