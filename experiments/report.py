@@ -238,6 +238,10 @@ def _eval_run(d: Path) -> Run:
         metrics = _metrics_of(rec["metrics"])
     except (KeyError, TypeError) as err:
         raise ValueError(f"evaluation.json lacks {err}") from None
+    la = rec.get("llm_alone") or {}
+    if not la.get("complete", True):
+        raise LookupError(f"unfinished: {la.get('episodes_scored')} of {la.get('episodes_total')} episodes scored "
+                          "(call budget; the same command continues)")
     return Run(
         kind="eval", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
         method=str(spec.get("method") or rec.get("name")), seed=int(spec.get("seed", 0)), metrics=metrics,

@@ -225,3 +225,21 @@ def test_exp_llm_on_the_local_server_pauses_on_its_budget_and_continues(tmp_path
     assert summary["llm_alone"]["complete"] == 1 and summary["llm_alone"]["cost"]["calls"] == 6
     assert reuse_state(_cfg(*args, "trainer.llm_call_budget=4"))[0] == "done"
     assert (Path(run_dir) / "eval" / "frames_000000000" / "trajectory_0.png").is_file()
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(300)
+def test_evaluate_entry_point_flies_the_llm_alone_the_same_way(tmp_path, local_llm):
+    from uavlae.evaluate import evaluate_checkpoint
+
+    out = tmp_path / "ev"
+    args = ["+exp=llm", f"experiment.eval_dir={out}", f"llm.base_url={local_llm.base_url}",
+            f"llm.cache_path={tmp_path / 'cache.sqlite'}", "trainer.eval_episodes=2", "trainer.eval_max_steps=2",
+            "trainer.eval_plots=0", "experiment.reuse=true"]
+    evaluate_checkpoint(_cfg(*args, "trainer.llm_call_budget=2"))  # both rows' first slot, then paused
+    rec = json.loads((out / "evaluation.json").read_text())
+    assert rec["llm_alone"]["complete"] is False and rec["llm_alone"]["cost"]["calls"] == 2
+    agg = evaluate_checkpoint(_cfg(*args, "trainer.llm_call_budget=2"))  # reuse continues a paused one
+    rec = json.loads((out / "evaluation.json").read_text())
+    assert rec["llm_alone"]["complete"] is True and rec["llm_alone"]["episodes_scored"] == 2 == agg["n_episodes"]
+    assert rec["llm_alone"]["cost"]["calls"] == 4 == rec["controller_stats"]["advised"]
