@@ -96,7 +96,7 @@ def _world(n: int):
     from uavlae.envs import make_env_config
     from uavlae.envs.scenario import sample_scenarios, unstack_scenarios
 
-    cfg = make_env_config(None)
+    cfg = make_env_config({"t_max": 80})  # short enough that one of these episodes lands before the others end
     return cfg, unstack_scenarios(sample_scenarios(cfg, n, torch.Generator().manual_seed(7)))
 
 
@@ -113,7 +113,7 @@ def _heuristic_always(cfg):
 def _evaluation(cfg, scen, out, **kw):
     from uavlae.llm_alone import LLMAloneEvaluation
 
-    return LLMAloneEvaluation(cfg, scen, _heuristic_always(cfg), out, seed=3, max_steps=40, n_plots=0,
+    return LLMAloneEvaluation(cfg, scen, _heuristic_always(cfg), out, seed=3, n_plots=0,
                               fingerprint={"what": "test"}, **kw)
 
 
@@ -122,12 +122,14 @@ def test_one_chunk_flies_what_the_evaluator_flies(tmp_path):
 
     cfg, scen = _world(3)
     res = _evaluation(cfg, scen, tmp_path / "a").run()
-    ref = Evaluator(cfg, scen, seed=3, max_steps=40, n_plots=0).run(_heuristic_always(cfg))
+    ref = Evaluator(cfg, scen, seed=3, n_plots=0).run(_heuristic_always(cfg))
     assert res["complete"] and res["episodes_scored"] == 3 and res["chunks"] == 1
     for k in ("DCR", "CR", "SLR", "RVR", "ECR", "mean_return", "mean_length"):
         assert res["metrics"][k] == pytest.approx(ref[k], nan_ok=True), k
-    # one decision per row and step while its episode runs, none after it ended
-    assert res["records"]["llm_calls"].tolist() == res["records"]["length"].tolist()
+    # one decision per row and step while its episode runs, none after it ended (row 1 lands first)
+    lengths = res["records"]["length"].tolist()
+    assert lengths == [80, 77, 80] and res["records"]["landed"].tolist() == [False, True, False]
+    assert res["records"]["llm_calls"].tolist() == lengths
     assert res["cost"]["calls"] == int(res["records"]["length"].sum()) == res["cost"]["calls_scored"]
 
 

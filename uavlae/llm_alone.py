@@ -7,9 +7,10 @@ default: the whole set at once) under a *call budget* (``trainer.llm_call_budget
 resumes where it left off:
 
 - Each step sends every still-flying row of the chunk to the advisor at once (one call per
-  row); a row whose episode has ended is stepped on with a zero action and never asked again,
-  so the episodes and their metrics are the ones :func:`uavlae.envs.metrics.rollout_metrics`
-  gives, without paying for the rows already done.
+  row). A row whose episode has ended is stepped on as
+  :func:`uavlae.envs.metrics.rollout_metrics` does (its output ignored) but is never asked
+  again (``OverridePolicy.row_mask``), so the episodes and their metrics are that evaluator's,
+  without paying for the rows already done.
 - After every step the progress (finished chunks' records and trajectories; the chunk in
   flight: its tensordict, the env's generator, the episode tracker, the per-row counters;
   the policy's counters; the accumulated wall clock) is written atomically to
@@ -62,7 +63,7 @@ class LLMAloneEvaluation:
         env_cfg: the world.
         scenarios: the evaluation set.
         policy: the acting module (an ``OverridePolicy`` in ``mode="always"``; anything that
-            writes ``"action"`` works, then nothing is counted as a fallback).
+            writes ``"action"`` works, e.g. the heuristic: then nothing is counted as a fallback).
         out_dir: where ``episodes.csv``, ``metrics.json``, the trajectory PNGs and
             ``progress.pt`` go.
         seed: chunk ``k``'s env is seeded with ``seed + k``.
@@ -194,14 +195,13 @@ class LLMAloneEvaluation:
                 log.info("call budget of %d spent: chunk %d/%d paused at step %d", self.budget, k + 1, self.n_chunks,
                          fl["step"])
                 return False
-            sub = self.policy(td[active])
-            action = torch.zeros(b, 2, device=self.device)
-            action[active] = sub.get("action").to(action.dtype)
-            td.set("action", action)
+            if hasattr(self.policy, "row_mask"):  # the rows whose episode ended are not asked
+                self.policy.row_mask = ~fl["finished"]
+            td = self.policy(td)  # the whole chunk: the actor's per-row memory stays aligned
             self.asked += int(active.numel())
             fl["llm_calls"][active] += 1
-            if "action_source" in sub.keys():
-                fl["llm_fallbacks"][active] += (sub.get("action_source").reshape(-1) == FALLBACK).long()
+            if "action_source" in td.keys():
+                fl["llm_fallbacks"] += ((td.get("action_source").reshape(-1) == FALLBACK) & ~fl["finished"]).long()
             td = env.step(td)
             nxt = td.get("next")
             fl["positions"].append(nxt.get(("state", "position")).reshape(b, 2).clone())
