@@ -50,6 +50,7 @@ def test_local_view_shows_what_lies_within_20_m_every_ge_and_e_limit():
     assert s.rz == ()  # 25 m away
     assert [(o.x, o.y) for o in s.ous] == [(110.0, 100.0)]
     assert [(g.x, g.y, g.remaining) for g in s.ges] == [(400.0, 400.0, 3.0), (20.0, 480.0, 0.5), (101.0, 99.0, 1.25)]
+    assert (s.d_bz, s.d_ou, s.d_rz, s.d_la) == (10.0, 10.0, math.inf, 380.0)  # the RZ's 25 m is out of view
     assert "(300.0, 300.0, 350.0, 350.0)" in s.episode and "(125.0, 80.0, 140.0, 120.0)" in s.episode  # slot key: whole map
 
     system, user = (m["content"] for m in build_messages(s, view="local", view_radius=20.0))

@@ -121,8 +121,8 @@ def advisor_states_from_tensordict(
 
     ``view_radius`` (m; the LLM-alone view, ``LLMConfig.view="local"``): only the zones of
     which some part lies within it of the DCU (each as its whole rectangle) and only the OUs
-    within it (and within the perception radius); every GE stays. The state's ``episode``
-    then names the whole map.
+    within it (and within the perception radius); every GE stays; a nearest distance to a zone
+    or OU beyond it reads inf. The state's ``episode`` then names the whole map.
     """
     rows = _rows(td, idx)
     if not rows:
@@ -163,9 +163,12 @@ def advisor_states_from_tensordict(
             for k, (rects, masks) in zones.items()
         }
         episode = ""
+        d = {k: float(dists[k][j]) for k in _DISTANCES}
         if view_radius is not None:
             episode = "|".join(" ".join(map(str, rects[k])) for k in ("bz", "nfz", "rz"))
             rects = {k: tuple(r for r in rs if rect_distance(r, x, y) <= view_radius) for k, rs in rects.items()}
+            # a nearest distance beyond the view would tell of what is out of it
+            d.update({k: math.inf for k in ("d_bz", "d_nfz", "d_rz", "d_ou") if d[k] > view_radius})
         out.append(
             AdvisorState(
                 position=(x, y),
@@ -177,7 +180,7 @@ def advisor_states_from_tensordict(
                 rz=rects["rz"],  # type: ignore[arg-type]
                 bz=rects["bz"],  # type: ignore[arg-type]
                 ous=tuple(ous),
-                **{k: float(dists[k][j]) for k in _DISTANCES},
+                **d,
                 episode=episode,
             )
         )
