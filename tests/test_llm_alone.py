@@ -176,6 +176,29 @@ def test_budget_pauses_and_the_same_run_continues_without_flying_an_episode_agai
         _evaluation(cfg, scen, tmp_path / "x", budget=1)
 
 
+def test_ctrl_c_pauses_at_the_last_saved_slot(tmp_path):
+    cfg, scen = _world(2)
+    straight = _evaluation(cfg, scen, tmp_path / "straight", chunk=1).run()
+
+    ev = _evaluation(cfg, scen, tmp_path / "c", chunk=1)
+    act, calls = ev.policy.forward, []
+
+    def interrupted(td):  # fault injection: Ctrl-C during the 100th decision
+        calls.append(1)
+        if len(calls) == 100:
+            raise KeyboardInterrupt
+        return act(td)
+
+    ev.policy.forward = interrupted
+    res = ev.run()
+    first = straight["records"]["length"].tolist()[0]
+    assert not res["complete"] and res["chunks_done"] == 1 and res["in_flight_step"] == 99 - first
+    assert res["cost"]["calls"] == 99 and ev.policy.run_totals()["advised"] == 99
+    done = _evaluation(cfg, scen, tmp_path / "c", chunk=1).run()
+    assert done["complete"] and done["records"]["length"].tolist() == straight["records"]["length"].tolist()
+    assert done["cost"]["calls"] == straight["cost"]["calls"]
+
+
 # ---------------------------------------------------------------------------- the real local server
 
 

@@ -16,7 +16,7 @@ resumes where it left off:
   the policy's counters; the accumulated wall clock) is written atomically to
   ``progress.pt`` in the evaluation folder. A killed run, or one whose budget ran out,
   continues from there when the same command is run again; finished episodes are never
-  flown again. The file remembers the config it belongs to: another config is an error.
+  flown again. Ctrl-C (SIGINT) pauses at the last saved slot and still writes the results. The file remembers the config it belongs to: another config is an error.
 - The budget counts LLM decisions (rows asked) in one invocation; a step is never split,
   so the run pauses before the first step that would go past it.
 - Only the episodes of finished chunks are scored (a chunk is a fixed part of the set, so the
@@ -160,9 +160,18 @@ class LLMAloneEvaluation:
         state["invocations"] += 1
         t0, wall0 = time.perf_counter(), float(state["wall_s"])
         paused = False
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            while state["next_chunk"] < self.n_chunks and not paused:
-                paused = not self._fly_chunk(state, lambda: wall0 + time.perf_counter() - t0)
+        try:
+            with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+                while state["next_chunk"] < self.n_chunks and not paused:
+                    paused = not self._fly_chunk(state, lambda: wall0 + time.perf_counter() - t0)
+        except KeyboardInterrupt:  # Ctrl-C / SIGINT: a pause at the last saved slot
+            if not self.progress_file.is_file():
+                raise
+            log.warning("interrupted: the progress of the last finished slot is kept; the same command continues")
+            state = torch.load(self.progress_file, map_location="cpu", weights_only=False)
+            if state["policy"] is not None and hasattr(self.policy, "set_extra_state"):
+                self.policy.set_extra_state(state["policy"])
+            return self.result(state)
         state["wall_s"] = wall0 + time.perf_counter() - t0
         state["policy"] = self._policy_state()
         self._save(state)
