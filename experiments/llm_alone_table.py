@@ -44,6 +44,26 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], n: int) -> dict[str, float]
         return ev.run()["metrics"]
 
 
+def in_flight(run_dir: Path) -> dict[str, Any] | None:
+    """The episode the budget paused, so far (not scored): its slot, data and energy, events."""
+    import torch
+
+    file = run_dir / "eval" / "frames_000000000" / "progress.pt"
+    if not file.is_file():
+        return None
+    state = torch.load(file, map_location="cpu", weights_only=False)
+    fl = state["in_flight"]
+    if fl is None:
+        return None
+    nxt, acc = fl["last_next"], fl["tracker"]["acc"]
+    st = nxt.get("state")
+    return {"scenario": int(state["next_chunk"]) * int(state["chunk"]), "slot": int(fl["step"]),
+            "position": [round(float(v), 1) for v in st.get("position")[0].tolist()],
+            "data_collected": float(st.get("data_collected")[0]), "data_total": float(st.get("data_total")[0]),
+            "energy_used": float(st.get("energy_used")[0]), "collided": bool(acc["collided"][0]),
+            "boundary_exit": bool(acc["boundary_exit"][0]), "rz_speeding": bool(acc["rz_speeding"][0])}
+
+
 def build(run_dir: Path, command: str | None) -> dict[str, Any]:
     final = json.loads((run_dir / "final_metrics.json").read_text())
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -67,6 +87,7 @@ def build(run_dir: Path, command: str | None) -> dict[str, Any]:
         "episodes_total": int(la["episodes_total"]),
         "complete": bool(la["complete"]),
         "in_flight_step": la.get("in_flight_step"),
+        "in_flight_so_far": in_flight(run_dir),
         "metrics": {k: final.get(f"eval/{k}") for k in (*PAPER_METRICS, "boundary_exit_rate", "mean_length")},
         "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, n).items()
                                       if k in (*PAPER_METRICS, "mean_length")} if n else None),
@@ -103,6 +124,12 @@ def markdown(res: dict[str, Any]) -> str:
     if h:
         lines.append(f"| heuristic, same scenarios | {res['episodes_scored']} | "
                      + " | ".join(f(h[k]) for k in PAPER_METRICS) + f" | {f(h['mean_length'])} |")
+    fl = res.get("in_flight_so_far")
+    if fl:
+        lines += ["", f"Paused episode (scenario {fl['scenario']}, not scored), after {fl['slot']} slots: at "
+                  f"{tuple(fl['position'])}, data {fl['data_collected']:.2f} of {fl['data_total']:.2f}, energy "
+                  f"{fl['energy_used']:.0f} J, collided {fl['collided']}, left the area {fl['boundary_exit']}, "
+                  f"RZ speeding {fl['rz_speeding']}."]
     lines += [
         "",
         "Cost over every invocation:",
