@@ -114,7 +114,7 @@ def markdown(res: dict[str, Any]) -> str:
         "",
         f"Scored: {res['episodes_scored']} of {res['episodes_total']} evaluation episodes (one scenario a chunk; "
         f"a call budget of {res['call_budget_per_invocation']} decisions an invocation"
-        + ("" if res["complete"] else f"; paused in the next episode at step {res['in_flight_step']}: "
+        + ("" if res["complete"] else f"; paused at slot {res['in_flight_step']} of the episode in flight: "
            "the same command continues it") + "). Metrics cover finished episodes only.",
         "",
         "| method | episodes | DCR | CR | SLR | RVR | ECR | mean length |",

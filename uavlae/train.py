@@ -238,8 +238,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     rows = summary["metrics"]
     n_eps = summary.get("eval_episodes")
     lines.append("")
-    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; "
-                 "the trained actor flies alone, deterministically):")
+    who_flies = ("the trained actor flies alone, deterministically" if summary.get("controller", "learner") == "learner"
+                 else f"{summary.get('controller')} flies")
+    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; {who_flies}):")
     width = max(len(k) for k in rows) + 2
     lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))
     for who, agg in rows.items():
