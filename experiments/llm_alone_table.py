@@ -114,8 +114,9 @@ def markdown(res: dict[str, Any]) -> str:
         "",
         f"Scored: {res['episodes_scored']} of {res['episodes_total']} evaluation episodes (one scenario a chunk; "
         f"a call budget of {res['call_budget_per_invocation']} decisions an invocation"
-        + ("" if res["complete"] else f"; paused at slot {res['in_flight_step']} of the episode in flight: "
-           "the same command continues it") + "). Metrics cover finished episodes only.",
+        + ("" if res["complete"] else (
+            f"; paused at slot {res['in_flight_step']} of the episode in flight" if res["in_flight_step"] is not None
+            else "; paused before the next episode") + ": the same command continues") + "). Metrics cover finished episodes only.",
         "",
         "| method | episodes | DCR | CR | SLR | RVR | ECR | mean length |",
         "|---|---|---|---|---|---|---|---|",

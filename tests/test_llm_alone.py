@@ -132,6 +132,12 @@ def test_one_chunk_flies_what_the_evaluator_flies(tmp_path):
     assert lengths == [80, 77, 80] and res["records"]["landed"].tolist() == [False, True, False]
     assert res["records"]["llm_calls"].tolist() == lengths
     assert res["cost"]["calls"] == int(res["records"]["length"].sum()) == res["cost"]["calls_scored"]
+    # a bare controller (no override, its memory kept through cache_state) flies the same
+    from uavlae.llm_alone import LLMAloneEvaluation
+    from uavlae.policies.greedy import GreedyPolicy
+
+    bare = LLMAloneEvaluation(cfg, scen, GreedyPolicy(cfg), tmp_path / "b", seed=3, chunk=2, n_plots=0).run()
+    assert bare["records"]["length"].tolist() == lengths and bare["cost"]["fallbacks"] == 0
 
 
 def test_budget_pauses_and_the_same_run_continues_without_flying_an_episode_again(tmp_path):

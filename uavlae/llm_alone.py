@@ -56,6 +56,13 @@ FORMAT_VERSION = 1
 LLM_COLUMNS = ("llm_calls", "llm_fallbacks")
 
 
+def _own_extra_state(policy: Any) -> bool:
+    """Whether ``policy`` keeps state through ``get_extra_state`` (``OverridePolicy`` does; a
+    plain ``nn.Module``'s default refuses to be called)."""
+    get = getattr(type(policy), "get_extra_state", None)
+    return get is not None and get is not getattr(torch.nn.Module, "get_extra_state", None)
+
+
 class LLMAloneEvaluation:
     """The evaluation set flown chunk by chunk under a call budget, resumable (module docstring).
 
@@ -148,15 +155,24 @@ class LLMAloneEvaluation:
         snapshot = getattr(self.policy, "snapshot", None)
         if snapshot is not None:
             snapshot(reset=True)  # the advisor's window into the run's totals, which travel below
-        get = getattr(self.policy, "get_extra_state", None)
-        return get() if get is not None else None
+        if _own_extra_state(self.policy):
+            return self.policy.get_extra_state()
+        cache = getattr(self.policy, "cache_state", None)  # a bare heuristic: its per-row memory
+        return {"cache": cache()} if cache is not None else None
+
+    def _load_policy_state(self, state: Any) -> None:
+        if state is None:
+            return
+        if _own_extra_state(self.policy):
+            self.policy.set_extra_state(state)
+        elif "cache" in state and hasattr(self.policy, "load_cache_state"):
+            self.policy.load_cache_state(state["cache"])
 
     # ------------------------------------------------------------------ the run
     def run(self) -> dict[str, Any]:
         """Fly until every chunk is done or the budget is spent; returns :meth:`result`."""
         state = self._load()
-        if state["policy"] is not None and hasattr(self.policy, "set_extra_state"):
-            self.policy.set_extra_state(state["policy"])
+        self._load_policy_state(state["policy"])
         state["invocations"] += 1
         t0, wall0 = time.perf_counter(), float(state["wall_s"])
         paused = False
@@ -169,8 +185,7 @@ class LLMAloneEvaluation:
                 raise
             log.warning("interrupted: the progress of the last finished slot is kept; the same command continues")
             state = torch.load(self.progress_file, map_location="cpu", weights_only=False)
-            if state["policy"] is not None and hasattr(self.policy, "set_extra_state"):
-                self.policy.set_extra_state(state["policy"])
+            self._load_policy_state(state["policy"])
             return self.result(state)
         state["wall_s"] = wall0 + time.perf_counter() - t0
         state["policy"] = self._policy_state()
