@@ -164,6 +164,19 @@ experiments-llm: $(STAMP)
 		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
 		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
 
+# The LLM alone (+exp=llm) on the evaluation set, one scenario at a time, under a call budget per
+# invocation (the same command continues a paused run), then its metrics and cost ->
+# results/llm_alone.{json,md} (docs/baselines.md, "llm")
+LLM_ALONE_BUDGET ?= 600
+LLM_ALONE_DIR ?= runs/llm_alone
+LLM_ALONE_RUN = +exp=llm run_dir=$(LLM_ALONE_DIR) trainer.eval_chunk=1 trainer.llm_call_budget=$(LLM_ALONE_BUDGET) \
+	llm.cache_path=$(LLM_ALONE_DIR)/llm_cache.sqlite logger.wandb.mode=disabled
+.PHONY: llm-alone
+llm-alone: $(STAMP)
+	$(BIN)/python -m uavlae.train $(LLM_ALONE_RUN)
+	$(BIN)/python -m experiments.llm_alone_table $(LLM_ALONE_DIR) --out results/llm_alone \
+		--command "make llm-alone LLM_ALONE_BUDGET=$(LLM_ALONE_BUDGET)"
+
 experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
 
@@ -198,7 +211,7 @@ quick: $(STAMP)
 # here), the LLM alone cut at 300 steps an episode (one call a step: 32 x 1000 calls uncut)
 QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=20000 trainer.compile_env=false
 quick-llm: $(STAMP)
-	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS=trainer.eval_max_steps=300
+	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS="trainer.eval_chunk=4 trainer.llm_call_budget=2000"
 	$(MAKE) experiments-report PROFILE=quick
 
 paper: $(STAMP)

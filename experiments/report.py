@@ -202,6 +202,9 @@ def _train_run(d: Path) -> Run:
     final = _read_json(final_file)
     tr = cfg.get("trainer", {})
     frames, episodes = int(final.get("frames", 0)), int(final.get("episodes", 0))
+    if final.get("eval/complete", 1) == 0:  # the LLM alone, paused by its call budget
+        raise LookupError(f"unfinished: {int(final.get('eval/episodes_scored', 0))} of "
+                          f"{int(final.get('eval/episodes_total', 0))} episodes scored (call budget; the same command continues)")
     if cfg.get("controller", "learner") == "learner":
         budget_frames = frames >= int(tr.get("total_frames", 0))
         budget_episodes = tr.get("total_episodes") is not None and episodes >= int(tr["total_episodes"])
@@ -215,7 +218,8 @@ def _train_run(d: Path) -> Run:
         updates=int(final.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
         dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or shlex.join(meta.get("argv", []))),
         packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
-        extra={"wall_s": final.get("wall_s"), "advisor_calls": _advisor_calls(d)},
+        extra={"wall_s": final.get("wall_s", final.get("llm/wall_s")),
+               "advisor_calls": int(final["llm/http_calls"]) if "llm/http_calls" in final else _advisor_calls(d)},
     )
 
 
@@ -234,6 +238,10 @@ def _eval_run(d: Path) -> Run:
         metrics = _metrics_of(rec["metrics"])
     except (KeyError, TypeError) as err:
         raise ValueError(f"evaluation.json lacks {err}") from None
+    la = rec.get("llm_alone") or {}
+    if not la.get("complete", True):
+        raise LookupError(f"unfinished: {la.get('episodes_scored')} of {la.get('episodes_total')} episodes scored "
+                          "(call budget; the same command continues)")
     return Run(
         kind="eval", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
         method=str(spec.get("method") or rec.get("name")), seed=int(spec.get("seed", 0)), metrics=metrics,

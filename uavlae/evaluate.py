@@ -242,7 +242,8 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     }
     if ex.reuse and record_file.is_file():
         done = json.loads(record_file.read_text())
-        if done.get("spec") == json.loads(json.dumps(spec, default=str)):
+        paused = not (done.get("llm_alone") or {}).get("complete", True)  # the LLM alone continues
+        if done.get("spec") == json.loads(json.dumps(spec, default=str)) and not paused:
             log.info("%s: evaluated already (experiment.reuse)", record_file)
             return done["metrics"]
     if tr.eval_set:
@@ -261,9 +262,26 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
         learner = make_learner(saved.algo, probe)
         learner.load_state_dict(state["learner"])
         policy = deterministic_actor(learner)
+    llm_alone = None
     try:
-        agg = evaluator.run(policy, out, title=f"{name} @ {frames} frames")
-        stats = policy.snapshot() if hasattr(policy, "snapshot") else {}
+        if cfg.controller == "llm":  # chunks, a call budget, resumable (uavlae.llm_alone)
+            from uavlae.llm_alone import LLMAloneEvaluation
+
+            fingerprint = {"spec": spec, "llm": OmegaConf.to_container(cfg.llm, resolve=True),
+                           "advisor": OmegaConf.to_container(cfg.advisor, resolve=True)}
+            ev = LLMAloneEvaluation(
+                env_cfg, scenarios, policy, out, seed=tr.eval_seed, chunk=tr.eval_chunk, max_steps=tr.eval_max_steps,
+                budget=tr.llm_call_budget, fingerprint=fingerprint, n_plots=tr.eval_plots, device=cfg.device,
+            )
+            res = ev.run()
+            ev.write(res, title=name)
+            agg = res["metrics"]
+            llm_alone = {k: res[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks",
+                                             "in_flight_step", "cost")}
+            stats = policy.run_totals()
+        else:
+            agg = evaluator.run(policy, out, title=f"{name} @ {frames} frames")
+            stats = policy.snapshot() if hasattr(policy, "snapshot") else {}
     finally:
         close = getattr(policy, "close", None)
         if close is not None:
@@ -278,6 +296,7 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
         "n_scenarios": len(scenarios),
         "metrics": agg,
         "controller_stats": {k: v for k, v in stats.items() if isinstance(v, (int, float))},
+        "llm_alone": llm_alone,
         "wall_s": round(time.perf_counter() - t0, 3),
         "experiment": resolved.get("experiment"),  # type: ignore[union-attr]
         "env": env_cfg.model_dump(mode="json"),

@@ -81,6 +81,8 @@ class TrainerConfig(StrictModel):
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
     baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
+    eval_chunk: int | None = Field(default=None, ge=1)  # controller=llm: scenarios flown together (None: all)
+    llm_call_budget: int | None = Field(default=None, ge=1)  # controller=llm: LLM decisions this invocation may ask
 
     @model_validator(mode="after")
     def _divisible(self) -> "TrainerConfig":

@@ -78,8 +78,9 @@ def _resolved(cfg: DictConfig) -> dict[str, Any]:
     return redact_secrets(OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
-# Keys that may differ between a sweep's re-run and the run it finds in its run_dir.
-REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", *RESUME_RUNTIME_KEYS)
+# Keys that may differ between a sweep's re-run and the run it finds in its run_dir (the LLM
+# alone's call budget is what one invocation may spend: a re-run with another continues).
+REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", "trainer.llm_call_budget", *RESUME_RUNTIME_KEYS)
 
 
 def _comparable(cfg_dict: dict[str, Any]) -> dict[str, Any]:
@@ -111,7 +112,10 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
         )
     final = run_dir / "final_metrics.json"
     if final.is_file():
-        return "done", json.loads(final.read_text())
+        done = json.loads(final.read_text())
+        if done.get("eval/complete", 1) == 0:  # the LLM alone paused by its call budget: continue it
+            return "new", None
+        return "done", done
     if (run_dir / "checkpoints" / "last.pt").is_file() or (run_dir / "checkpoints" / "prev.pt").is_file():
         return "resume", None
     return "new", None
@@ -234,8 +238,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     rows = summary["metrics"]
     n_eps = summary.get("eval_episodes")
     lines.append("")
-    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; "
-                 "the trained actor flies alone, deterministically):")
+    who_flies = ("the trained actor flies alone, deterministically" if summary.get("controller", "learner") == "learner"
+                 else f"{summary.get('controller')} flies")
+    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; {who_flies}):")
     width = max(len(k) for k in rows) + 2
     lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))
     for who, agg in rows.items():
@@ -266,6 +271,16 @@ def format_summary(summary: dict[str, Any]) -> str:
                 + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
                    if summary.get("overlap_s") else "") + "."
             )
+    la = summary.get("llm_alone")
+    if la:
+        c = la["cost"]
+        lines.append(
+            f"  LLM alone: {la['episodes_scored']} of {la['episodes_total']} episodes scored "
+            f"({la['chunks_done']} of {la['chunks']} chunks of {la['chunk']} scenarios"
+            + ("" if la["complete"] else f"; paused by the call budget {la['budget']}, the same command continues") + "); "
+            f"{int(c['calls']):,} LLM decisions in {c['wall_s']:.0f} s ({c['calls_per_s']:.2f}/s) over "
+            f"{int(c['invocations'])} invocation(s), {int(c['fallbacks']):,} answered by the fallback."
+        )
     lines.append("")
     for pic in summary.get("pictures", []):
         lines.append(f"Pictures: {pic}")
@@ -345,7 +360,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path) -> dict[str, Any]:
-    """``heuristic`` / ``llm``: no learner; the controller flies the evaluation set."""
+    """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
+    (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`)."""
+    if cfg.controller == "llm":
+        return _evaluate_llm_alone(cfg, env_cfg, evaluator, logger, run_dir)
     controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
     t0 = time.perf_counter()
     try:
@@ -367,6 +385,53 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
         "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
     })
     log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
+    return final
+
+
+def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path) -> dict[str, Any]:
+    """``+exp=llm``: :class:`uavlae.llm_alone.LLMAloneEvaluation` on the run's evaluation set.
+    A run paused by its call budget writes its final metrics with ``eval/complete`` 0 (the
+    scored episodes only, ``eval/episodes_scored`` of ``eval/episodes_total``); the same
+    command continues it. The cost goes under ``llm/``."""
+    from uavlae.llm_alone import LLMAloneEvaluation
+
+    tr = make_trainer_config(cfg.trainer)
+    fingerprint = _comparable(_resolved(cfg))
+    fingerprint.pop("run_dir", None)  # a moved run folder still continues
+    out = _eval_out(run_dir, 0)
+    controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
+    try:
+        ev = LLMAloneEvaluation(
+            env_cfg, evaluator.scenarios, controller, out, seed=tr.eval_seed, chunk=tr.eval_chunk,
+            max_steps=tr.eval_max_steps, budget=tr.llm_call_budget, fingerprint=fingerprint,
+            n_plots=tr.eval_plots, device=cfg.device,
+        )
+        res = ev.run()
+        totals = controller.run_totals()
+    finally:
+        controller.close()
+    ev.write(res, title=str(cfg.name))
+    agg = res["metrics"]
+    progress = {"complete": int(res["complete"]), "episodes_scored": res["episodes_scored"],
+                "episodes_total": res["episodes_total"], "chunks_done": res["chunks_done"], "chunks": res["chunks"]}
+    metrics = {**_prefixed("eval", {**agg, **progress}), **_prefixed("llm", res["cost"]),
+               **_prefixed("override", totals), "time/eval_s": res["cost"]["wall_s"]}
+    logger.log_metrics(metrics, step=0)
+    if res["trajectories"]:
+        logger.log_images(_trajectory_images(out), step=0)
+    final = {"frames": 0, **metrics}
+    dump_json(run_dir / "final_metrics.json", final)
+    write_summary(run_dir, {
+        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
+        "eval_episodes": res["episodes_scored"], "metrics": {str(cfg.name): agg},
+        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
+        "llm_alone": {**progress, "in_flight_step": res["in_flight_step"], "cost": res["cost"],
+                      "budget": tr.llm_call_budget, "chunk": ev.chunk},
+    })
+    state = "complete" if res["complete"] else (
+        f"paused by the call budget ({res['chunks_done']}/{res['chunks']} chunks done); run the same command to continue")
+    log.info("%s: %d of %d episodes scored, %s: %s", cfg.name, res["episodes_scored"], res["episodes_total"], state,
+             {k: round(agg[k], 4) for k in PAPER_METRICS})
     return final
 
 

@@ -171,6 +171,19 @@ class EpisodeTracker:
         """Every record emitted so far, column-wise, in order of completion."""
         return concat_records(self._chunks, device=self.device)
 
+    def state_dict(self) -> dict[str, Any]:
+        """The running episodes' accumulators, the episode counts and the records emitted so far
+        (plain tensors: ``torch.load(weights_only=True)`` reads them back)."""
+        return {"acc": {k: v.clone() for k, v in self._acc.items()},
+                "episodes_per_row": self.episodes_per_row.clone(), "records": self.records()}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self._acc = {k: v.clone().to(self.device) for k, v in state["acc"].items()}
+        self.episodes_per_row = state["episodes_per_row"].clone().to(self.device)
+        recs = state["records"]
+        n = int(next(iter(recs.values())).numel()) if recs else 0
+        self._chunks = [dict(recs)] if n else []
+
     def clear(self) -> None:
         """Drop the emitted records (the running episodes are kept)."""
         self._chunks = []

@@ -310,7 +310,7 @@ class LLMAdvisor:
     def _messages(self, state: AdvisorState) -> list[dict]:
         c = self.cfg
         return build_messages(state, c.prompt_ablation, c.observation, c.reasoning_max_chars, c.example,
-                              c.reasoning_first)
+                              c.reasoning_first, c.view, c.view_radius)
 
     def _key(self, messages: list[dict], state: AdvisorState) -> str:
         c = self.cfg

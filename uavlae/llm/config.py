@@ -19,6 +19,7 @@ Fallback = Literal["end_episode", "policy", "heuristic"]
 Observation = Literal["compact", "verbose"]
 Example = Literal["paper", "placeholder", "none"]
 GrammarStyle = Literal["auto", "compact", "verbose"]
+View = Literal["full", "local"]
 FlashAttn = Literal["auto", "on", "off"]
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
@@ -71,6 +72,11 @@ class LLMConfig(StrictModel):
     # response_format grammar: templates/action_compact.gbnf or action.gbnf (spaces, two
     # decimals); auto: the one of the observation style
     grammar_style: GrammarStyle = "auto"
+    # what the state shows: "full" (every zone, the OUs within the perception radius) or "local"
+    # (the LLM-alone baseline, paper §6.1: only the zones and OUs within view_radius of the DCU,
+    # every GE, and the energy left of E_limit)
+    view: View = "full"
+    view_radius: float = Field(20.0, gt=0)  # m, "local" only (paper: 20 m)
     cache_path: str | None = "~/.cache/uavlae/llm_cache.sqlite"
     cache_mode: CacheMode = "read_write"
     prompt_ablation: Ablation = "none"

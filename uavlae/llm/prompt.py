@@ -19,6 +19,11 @@ only the format, or none (the keys are named); ``reasoning_first`` orders the an
 vx, vy, Confidence, so the velocity is decoded after the bounded Reasoning. Each choice is fixed
 for a run, so the system message stays one exact prefix.
 
+``view="local"`` (the LLM-alone baseline, paper §6.1) shows the state as the extraction left it
+(:func:`~uavlae.llm.state.advisor_states_from_tensordict` with ``view_radius``: the zones and
+OUs within that radius, every GE); the compact style then uses ``observation_local.txt``, which
+says so and adds the energy left of E_limit, and part (a) names the energy among the DCU state.
+
 Texts live in ``templates/``; every number comes from :class:`~uavlae.llm.state.WorldLimits`
 or the state.
 """
@@ -34,6 +39,7 @@ from .schema import answer_keys
 from .state import AdvisorState, Rect, WorldLimits
 
 OBSERVATIONS = ("compact", "verbose")
+VIEWS = ("full", "local")
 EXAMPLE_KINDS = ("paper", "placeholder", "none")
 # part (c)'s example answer, field by field: the paper's numbers (and the compact style's short
 # Reasoning), or a placeholder that shows only the format. A small model copies a numeric
@@ -116,20 +122,33 @@ def example_answer(observation: str = "compact", example: str = "paper", reasoni
     return "{" + sep.join(f'"{k}"{colon}{fields[k]}' for k in answer_keys(reasoning_first)) + "}"
 
 
+def _check_view(view: str) -> None:
+    if view not in VIEWS:
+        raise ValueError(f"prompt view must be one of {list(VIEWS)}, got {view!r}")
+
+
 @lru_cache(maxsize=64)
 def system_prompt(lim: WorldLimits, ablation: str = "none", observation: str = "compact",
-                  reasoning_max_chars: int = 40, example: str = "paper", reasoning_first: bool = False) -> str:
+                  reasoning_max_chars: int = 40, example: str = "paper", reasoning_first: bool = False,
+                  view: str = "full", view_radius: float = 20.0) -> str:
     """Parts (a)-(c). The compact style states the Reasoning bound (its answers are cut there);
-    without an example (``example="none"``) part (c) names the keys in their order instead."""
+    without an example (``example="none"``) part (c) names the keys in their order instead.
+    The local view quotes the OUs' radius as the smaller of it and the perception radius and
+    names the energy left of E_limit among the DCU state."""
     _check_style(observation)
+    _check_view(view)
     lines = "\n".join(f"{i}) {g}" for i, g in enumerate(guidelines(lim, ablation), 1))
     bound = f" (Reasoning at most {reasoning_max_chars} characters)" if observation == "compact" else ""
     answer = example_answer(observation, example, reasoning_first)
     lead = {"paper": ", for example:\n", "placeholder": ", in this form:\n"}.get(example)
     shown = (lead + answer if lead else " with the keys " + ", ".join(answer_keys(reasoning_first)) + " in this order.")
+    dcu_state = "position, velocity" if observation == "compact" else "position, velocity, energy left"
+    limits = _limit_vars(lim)
+    if view == "local":
+        dcu_state = f"position, velocity, energy left of the energy budget E_limit = {limits['e_limit']} J"
+        limits["perception_radius"] = _compact(min(lim.perception_radius, view_radius))
     return Template(template("system.txt")).substitute(
-        _limit_vars(lim), guidelines=lines, reasoning_bound=bound, example=shown,
-        dcu_state="position, velocity" if observation == "compact" else "position, velocity, energy left").strip()
+        limits, guidelines=lines, reasoning_bound=bound, example=shown, dcu_state=dcu_state).strip()
 
 
 def visible_ou_distance(s: AdvisorState) -> float:
@@ -152,10 +171,27 @@ def compact_observation_prompt(s: AdvisorState) -> str:
     ).strip()
 
 
-def observation_prompt(s: AdvisorState, observation: str = "compact") -> str:
+def local_observation_prompt(s: AdvisorState, view_radius: float) -> str:
+    """The compact observation of the local view: the zones and OUs in view (the extraction
+    filtered them), every GE, the energy left of E_limit on the DCU's line."""
+    ges = " ".join(f"({_num(g.x, 0)},{_num(g.y, 0)},{_num(g.remaining, 1)})" for g in s.ges) or "none"
+    r = min(s.limits.perception_radius, view_radius)
+    ous = " ".join(f"({_num(o.x, 0)},{_num(o.y, 0)},{_num(o.vx)},{_num(o.vy)})"
+                   for o in s.ous if o.distance <= r) or "none"
+    return Template(template("observation_local.txt")).substitute(
+        landing=_rect(s.limits.landing), view_radius=_compact(view_radius), bz=_rects(s.bz), nfz=_rects(s.nfz),
+        rz=_rects(s.rz), ges=ges, ous=ous, x=_num(s.position[0], 0), y=_num(s.position[1], 0),
+        vx=_num(s.velocity[0]), vy=_num(s.velocity[1]), energy_left=_num(s.energy_left, 0),
+        e_limit=_num(s.limits.e_limit, 0), in_rz=", inside an RZ" if s.in_rz else "",
+    ).strip()
+
+
+def observation_prompt(s: AdvisorState, observation: str = "compact", view: str = "full",
+                       view_radius: float = 20.0) -> str:
     _check_style(observation)
+    _check_view(view)
     if observation == "compact":
-        return compact_observation_prompt(s)
+        return local_observation_prompt(s, view_radius) if view == "local" else compact_observation_prompt(s)
     lim = s.limits
     ges = " ".join(f"({_num(g.x, 0)},{_num(g.y, 0)},{_num(g.remaining, 2)})" for g in s.ges) or "none"  # whole metres: fewer tokens
     ous = " ".join(f"({_num(o.x)},{_num(o.y)},{_num(o.vx)},{_num(o.vy)})" for o in s.ous
@@ -171,18 +207,20 @@ def observation_prompt(s: AdvisorState, observation: str = "compact") -> str:
 
 
 def episode_text(s: AdvisorState) -> str:
-    """What identifies a state's episode for the server's slots: its map (the zones)."""
-    return f"{_rects(s.bz)}|{_rects(s.nfz)}|{_rects(s.rz)}"
+    """What identifies a state's episode for the server's slots: its map (the zones; the whole
+    map when the state shows only the zones in view)."""
+    return s.episode or f"{_rects(s.bz)}|{_rects(s.nfz)}|{_rects(s.rz)}"
 
 
 def build_messages(s: AdvisorState, ablation: str = "none", observation: str = "compact",
                    reasoning_max_chars: int = 40, example: str = "paper",
-                   reasoning_first: bool = False) -> list[dict[str, str]]:
+                   reasoning_first: bool = False, view: str = "full",
+                   view_radius: float = 20.0) -> list[dict[str, str]]:
     """The chat messages for one state: system (parts a-c), user (the observation)."""
     return [
         {"role": "system", "content": system_prompt(s.limits, ablation, observation, reasoning_max_chars,
-                                                    example, reasoning_first)},
-        {"role": "user", "content": observation_prompt(s, observation)},
+                                                    example, reasoning_first, view, float(view_radius))},
+        {"role": "user", "content": observation_prompt(s, observation, view, view_radius)},
     ]
 
 

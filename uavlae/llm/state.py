@@ -76,6 +76,9 @@ class AdvisorState:
     d_boundary: float = math.inf
     d_la: float = math.inf
     extra: dict[str, float] = field(default_factory=dict)  # free slot for callers; not in the prompt
+    # the episode's whole map when the zones above are only the ones in view (view_radius):
+    # the server slot of the episode is chosen by it, not by what happens to be in view
+    episode: str = ""
 
     @property
     def in_rz(self) -> bool:
@@ -84,6 +87,13 @@ class AdvisorState:
 
 
 _DISTANCES = ("d_bz", "d_nfz", "d_rz", "d_ou", "d_boundary", "d_la")
+
+
+def rect_distance(r: Rect, x: float, y: float) -> float:
+    """Distance (m) from the point (x, y) to the rectangle ``r`` (0 inside or on it)."""
+    dx = max(r[0] - x, 0.0, x - r[2])
+    dy = max(r[1] - y, 0.0, y - r[3])
+    return math.hypot(dx, dy)
 
 
 def _rows(td: Any, idx: Any) -> list[int]:
@@ -99,7 +109,8 @@ def _rows(td: Any, idx: Any) -> list[int]:
 
 
 def advisor_states_from_tensordict(
-    td: Any, idx: Sequence[int] | Any, limits: WorldLimits, *, ge_eps: float = 1e-9
+    td: Any, idx: Sequence[int] | Any, limits: WorldLimits, *, ge_eps: float = 1e-9,
+    view_radius: float | None = None,
 ) -> list[AdvisorState]:
     """Build one :class:`AdvisorState` per selected row of a ``[B]`` tensordict.
 
@@ -107,6 +118,11 @@ def advisor_states_from_tensordict(
     ``td["next"]`` after a step). ``idx`` is a list of row indices or a ``[B]`` bool mask.
     OUs are kept only within ``limits.perception_radius`` (nearest first); GEs only with
     remaining data > ``ge_eps``; zones only where their mask is set.
+
+    ``view_radius`` (m; the LLM-alone view, ``LLMConfig.view="local"``): only the zones of
+    which some part lies within it of the DCU (each as its whole rectangle) and only the OUs
+    within it (and within the perception radius); every GE stays; a nearest distance to a zone
+    or OU beyond it reads inf. The state's ``episode`` then names the whole map.
     """
     rows = _rows(td, idx)
     if not rows:
@@ -124,7 +140,7 @@ def advisor_states_from_tensordict(
     ou_pos, ou_vel, ou_mask = take("ou_pos"), take("ou_vel"), take("ou_mask")
     zones = {k: (take(k), take(f"{k}_mask")) for k in ("nfz", "rz", "bz")}
     dists = {k: take(k) for k in _DISTANCES}
-    pr = limits.perception_radius
+    pr = limits.perception_radius if view_radius is None else min(limits.perception_radius, float(view_radius))
 
     out = []
     for j in range(len(rows)):
@@ -146,6 +162,13 @@ def advisor_states_from_tensordict(
             k: tuple(tuple(float(c) for c in r) for r, m in zip(rects[j], masks[j]) if m)
             for k, (rects, masks) in zones.items()
         }
+        episode = ""
+        d = {k: float(dists[k][j]) for k in _DISTANCES}
+        if view_radius is not None:
+            episode = "|".join(" ".join(map(str, rects[k])) for k in ("bz", "nfz", "rz"))
+            rects = {k: tuple(r for r in rs if rect_distance(r, x, y) <= view_radius) for k, rs in rects.items()}
+            # a nearest distance beyond the view would tell of what is out of it
+            d.update({k: math.inf for k in ("d_bz", "d_nfz", "d_rz", "d_ou") if d[k] > view_radius})
         out.append(
             AdvisorState(
                 position=(x, y),
@@ -157,7 +180,8 @@ def advisor_states_from_tensordict(
                 rz=rects["rz"],  # type: ignore[arg-type]
                 bz=rects["bz"],  # type: ignore[arg-type]
                 ous=tuple(ous),
-                **{k: float(dists[k][j]) for k in _DISTANCES},
+                **d,
+                episode=episode,
             )
         )
     return out
@@ -219,5 +243,5 @@ def rounded_state(s: AdvisorState, step: float | None) -> AdvisorState:
         ges=tuple(GroundEquipment(r(g.x), r(g.y), r(g.remaining)) for g in s.ges),
         nfz=rects(s.nfz), rz=rects(s.rz), bz=rects(s.bz),
         ous=tuple(OtherUAV(r(o.x), r(o.y), r(o.vx), r(o.vy), o.distance) for o in s.ous),
-        **{k: r(getattr(s, k)) for k in _DISTANCES},
+        **{k: r(getattr(s, k)) for k in _DISTANCES}, episode=s.episode,
     )

@@ -212,7 +212,10 @@ class LLMAdvisorAdapter:
         from uavlae.llm import advisor_states_from_tensordict
 
         n = td_rows.batch_size[0]
-        states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits)
+        cfg = getattr(self.llm, "cfg", None)
+        local = getattr(cfg, "view", "full") == "local"  # the LLM alone: what lies within view_radius
+        states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits,
+                                                view_radius=cfg.view_radius if local else None)
         submit = getattr(self.llm, "submit", None)
         if submit is None:  # an advisor with only the blocking call
             return _Answered(self._actions(self.llm.advise_sync(states, timeout=self.timeout)))
@@ -340,6 +343,9 @@ class OverridePolicy(TensorDictModuleBase):
         self.hold: dict[str, Tensor] | None = None  # per row: action, source, slots left, last step
         self.perception_radius = float(perception_radius)
         self.deterministic = False  # evaluation / deployment: actor alone, deterministic
+        # bool [B]: the rows that may be triggered at all (None: every row); the LLM-alone
+        # evaluation clears a row once its episode has ended, so it is never asked again
+        self.row_mask: Tensor | None = None
         self._active_actor: Any = None  # set by using_actor() (random warm-up frames)
         self.generator = torch.Generator()
         self.generator.manual_seed(self.seed)
@@ -384,15 +390,16 @@ class OverridePolicy(TensorDictModuleBase):
         if not self.override_active:
             return torch.zeros(B, dtype=torch.bool, device=device)
         if self.mode == "always":
-            return torch.ones(B, dtype=torch.bool, device=device)
-        if self.mode == "fixed_prob":
+            trig = torch.ones(B, dtype=torch.bool, device=device)
+        elif self.mode == "fixed_prob":
             u = torch.rand(B, generator=self.generator)
-            return (u < self.fp).to(device)
-        # "proximity": SPEC §8, any BZ, NFZ, RZ or OU within d_th (inf when none is present)
-        d = torch.stack([td.get(k).reshape(B) for k in PROXIMITY_KEYS], dim=-1)
-        d_ou = d[:, -1]  # PROXIMITY_KEYS ends with d_ou
-        d = torch.cat([d[:, :-1], d_ou.masked_fill(d_ou > self.perception_radius, math.inf)[:, None]], -1).amin(-1)
-        return (d <= self.d_th).to(device)
+            trig = (u < self.fp).to(device)
+        else:  # "proximity": SPEC §8, any BZ, NFZ, RZ or OU within d_th (inf when none is present)
+            d = torch.stack([td.get(k).reshape(B) for k in PROXIMITY_KEYS], dim=-1)
+            d_ou = d[:, -1]  # PROXIMITY_KEYS ends with d_ou
+            d = torch.cat([d[:, :-1], d_ou.masked_fill(d_ou > self.perception_radius, math.inf)[:, None]], -1).amin(-1)
+            trig = (d <= self.d_th).to(device)
+        return trig if self.row_mask is None else trig & self.row_mask.to(device)
 
     # ------------------------------------------------------------------ acting
     def _act(self, td: TensorDictBase) -> TensorDictBase:

@@ -1,0 +1,174 @@
+"""The LLM alone's measured run (``make llm-alone``) as ``results/llm_alone.json`` and ``.md``.
+
+Reads a ``+exp=llm`` run folder (``final_metrics.json``, ``summary.json``, ``config.json``,
+the scored episodes' ``episodes.csv``) and writes the five metrics over the scored episodes,
+each episode's length, decisions and outcome, the LLM's cost, and, for reference, the greedy
+heuristic flown on the same scenarios with the same seeds (one scenario per chunk, as the run).
+
+    python -m experiments.llm_alone_table runs/llm_alone --out results/llm_alone --command "make llm-alone"
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from uavlae.envs.metrics import PAPER_METRICS
+from uavlae.files import atomic_write, dump_json
+from uavlae.machine import describe_machine
+
+EPISODE_COLUMNS = ("row", "length", "llm_calls", "llm_fallbacks", "collided", "landed", "boundary_exit",
+                   "rz_speeding", "data_collected", "data_total", "energy_used")
+
+
+def heuristic_on(run_dir: Path, cfg: dict[str, Any], n: int) -> dict[str, float]:
+    """The greedy heuristic on the run's first ``n`` scenarios, chunked and seeded as the run."""
+    from omegaconf import OmegaConf
+
+    from uavlae.envs import make_env_config
+    from uavlae.envs.scenario import load_scenarios
+    from uavlae.factories import make_heuristic
+    from uavlae.llm_alone import LLMAloneEvaluation
+
+    c = OmegaConf.create(cfg)
+    env_cfg = make_env_config(c.env)
+    scenarios = load_scenarios(run_dir / "eval_set.json")[:n]
+    tr = c.trainer
+    with tempfile.TemporaryDirectory() as tmp:
+        ev = LLMAloneEvaluation(env_cfg, scenarios, make_heuristic(c, env_cfg), tmp, seed=int(tr.eval_seed),
+                                chunk=tr.eval_chunk, max_steps=tr.eval_max_steps, n_plots=0)
+        return ev.run()["metrics"]
+
+
+def in_flight(run_dir: Path) -> dict[str, Any] | None:
+    """The episode the budget paused, so far (not scored): its slot, data and energy, events."""
+    import torch
+
+    file = run_dir / "eval" / "frames_000000000" / "progress.pt"
+    if not file.is_file():
+        return None
+    state = torch.load(file, map_location="cpu", weights_only=False)
+    fl = state["in_flight"]
+    if fl is None:
+        return None
+    nxt, acc = fl["last_next"], fl["tracker"]["acc"]
+    st = nxt.get("state")
+    return {"scenario": int(state["next_chunk"]) * int(state["chunk"]), "slot": int(fl["step"]),
+            "position": [round(float(v), 1) for v in st.get("position")[0].tolist()],
+            "data_collected": float(st.get("data_collected")[0]), "data_total": float(st.get("data_total")[0]),
+            "energy_used": float(st.get("energy_used")[0]), "collided": bool(acc["collided"][0]),
+            "boundary_exit": bool(acc["boundary_exit"][0]), "rz_speeding": bool(acc["rz_speeding"][0])}
+
+
+def build(run_dir: Path, command: str | None) -> dict[str, Any]:
+    final = json.loads((run_dir / "final_metrics.json").read_text())
+    summary = json.loads((run_dir / "summary.json").read_text())
+    cfg = json.loads((run_dir / "config.json").read_text())
+    meta = json.loads((run_dir / "meta.json").read_text()) if (run_dir / "meta.json").is_file() else {}
+    la = summary["llm_alone"]
+    episodes_file = run_dir / "eval" / "frames_000000000" / "episodes.csv"
+    episodes = list(csv.DictReader(episodes_file.open())) if episodes_file.is_file() else []
+    n = int(la["episodes_scored"])
+    return {
+        "what": "the LLM alone (+exp=llm): the local model decides every step; metrics over the scored episodes",
+        "command": command or meta.get("command"),
+        "run_command": meta.get("command"),
+        "commit": (meta.get("git") or {}).get("commit"),
+        "model": cfg["llm"]["model"],
+        "view": {"view": cfg["llm"]["view"], "view_radius_m": cfg["llm"]["view_radius"]},
+        "fallback": cfg["advisor"]["fallback"],
+        "call_budget_per_invocation": la["budget"],
+        "chunk": la["chunk"],
+        "episodes_scored": n,
+        "episodes_total": int(la["episodes_total"]),
+        "complete": bool(la["complete"]),
+        "in_flight_step": la.get("in_flight_step"),
+        "in_flight_so_far": in_flight(run_dir),
+        "metrics": {k: final.get(f"eval/{k}") for k in (*PAPER_METRICS, "boundary_exit_rate", "mean_length")},
+        "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, n).items()
+                                      if k in (*PAPER_METRICS, "mean_length")} if n else None),
+        "cost": la["cost"],
+        "episodes": [{k: r.get(k) for k in EPISODE_COLUMNS} for r in episodes],
+        "machine": describe_machine(),
+    }
+
+
+def markdown(res: dict[str, Any]) -> str:
+    c = res["cost"]
+    m, h = res["metrics"], res["heuristic_same_scenarios"]
+
+    def f(v: Any) -> str:
+        return "n/a" if v is None else f"{float(v):.3f}"
+
+    lines = [
+        "# The LLM alone (+exp=llm)",
+        "",
+        f"Command: `{res['command']}` (the run: `{res['run_command']}`). Model: {res['model']} on the local "
+        f"xllamacpp server; view: {res['view']['view']} ({res['view']['view_radius_m']:g} m); failed answers: "
+        f"{res['fallback']}. Machine: {res['machine']['cpu']}, {res['machine']['logical_cores']} logical cores, "
+        f"load {res['machine']['load_average_1_5_15']} when the table was written (the machine is shared).",
+        "",
+        f"Scored: {res['episodes_scored']} of {res['episodes_total']} evaluation episodes (one scenario a chunk; "
+        f"a call budget of {res['call_budget_per_invocation']} decisions an invocation"
+        + ("" if res["complete"] else (
+            f"; paused at slot {res['in_flight_step']} of the episode in flight" if res["in_flight_step"] is not None
+            else "; paused before the next episode") + ": the same command continues") + "). Metrics cover finished episodes only.",
+        "",
+        "| method | episodes | DCR | CR | SLR | RVR | ECR | mean length |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| llm | {res['episodes_scored']} | " + " | ".join(f(m[k]) for k in PAPER_METRICS) + f" | {f(m['mean_length'])} |",
+    ]
+    if h:
+        lines.append(f"| heuristic, same scenarios | {res['episodes_scored']} | "
+                     + " | ".join(f(h[k]) for k in PAPER_METRICS) + f" | {f(h['mean_length'])} |")
+    fl = res.get("in_flight_so_far")
+    if fl:
+        lines += ["", f"Paused episode (scenario {fl['scenario']}, not scored), after {fl['slot']} slots: at "
+                  f"{tuple(fl['position'])}, data {fl['data_collected']:.2f} of {fl['data_total']:.2f}, energy "
+                  f"{fl['energy_used']:.0f} J, collided {fl['collided']}, left the area {fl['boundary_exit']}, "
+                  f"RZ speeding {fl['rz_speeding']}."]
+    lines += [
+        "",
+        "Cost over every invocation:",
+        "",
+        "| decisions | in scored episodes | HTTP calls | cache hits | ask-again | failures (fallback) | "
+        "prompt tokens | completion tokens | wall s | decisions/s | latency p50 s | p95 s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| {int(c['calls'])} | {int(c['calls_scored'])} | {int(c.get('http_calls', 0))} | {int(c.get('cache_hits', 0))} | "
+        f"{int(c.get('ask_again', 0))} | {int(c['fallbacks'])} | {int(c.get('prompt_tokens', 0))} | "
+        f"{int(c.get('completion_tokens', 0))} | {c['wall_s']:.0f} | {c['calls_per_s']:.2f} | "
+        f"{f(c.get('latency_p50_s'))} | {f(c.get('latency_p95_s'))} |",
+        "",
+        "Episodes:",
+        "",
+        "| scenario | length | decisions | fallbacks | collided | landed | left the area | data | energy J |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in res["episodes"]:
+        lines.append(f"| {e['row']} | {e['length']} | {e['llm_calls']} | {e['llm_fallbacks']} | {e['collided']} | "
+                     f"{e['landed']} | {e['boundary_exit']} | {float(e['data_collected']):.2f} of "
+                     f"{float(e['data_total']):.2f} | {float(e['energy_used']):.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run_dir", type=Path)
+    p.add_argument("--out", type=Path, default=Path("results/llm_alone"), help="path stem of the .json and .md")
+    p.add_argument("--command", default=None, help="the command that reproduces it (default: the run's own)")
+    a = p.parse_args(argv)
+    if not (a.run_dir / "final_metrics.json").is_file():
+        raise SystemExit(f"{a.run_dir}: no final_metrics.json (run `make llm-alone` first)")
+    res = build(a.run_dir, a.command)
+    dump_json(a.out.with_suffix(".json"), res)
+    text = markdown(res)
+    atomic_write(a.out.with_suffix(".md"), lambda fh: fh.write(text.encode("utf-8")))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
