@@ -41,7 +41,8 @@ from uavlae.files import atomic_write, dump_json
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 # Higher is better for these; lower for the others (the radar chart flips those).
 HIGHER_BETTER = ("DCR", "SLR")
-METHOD_ORDER = ("sac_llm", "sac_heuristic", "sac", "ppo", "ddpg", "cpo", "llm", "heuristic", "random")
+METHOD_ORDER = ("sac_llm", "sac_heuristic", "sac_heuristic_planner", "sac", "ppo", "ddpg", "cpo", "wang", "theile", "llm",
+                "heuristic", "heuristic_planner", "random")
 SCENARIO_SWEEPS = {  # sweep -> (count, figure)
     "scenario_n_ou": ("N_OU", "fig5"),
     "scenario_n_ge": ("N_GE", "fig6"),
