@@ -312,6 +312,9 @@ def _full_run_frames() -> int:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train (or evaluate a controller) as ``cfg`` says; returns the final metrics."""
+    # A multirun worker runs job after job in one process: the graphs compiled for an earlier
+    # job's env would count against this job's recompile limit (and fail it under fullgraph).
+    torch.compiler.reset()
     state, final = reuse_state(cfg)
     if state == "done":
         log.info("%s: finished already (experiment.reuse): %s", cfg.name, Path(cfg.run_dir) / "final_metrics.json")
