@@ -303,6 +303,22 @@ def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch)
         run(_cfg(*args[:-len(TINY)], *TINY[1:], "trainer.total_frames=256"))
 
 
+def test_reuse_keeps_a_run_made_before_a_setting_existed(tmp_path, monkeypatch):
+    from uavlae.train import run
+
+    monkeypatch.chdir(tmp_path)
+    args = ["+exp=sac", "run_dir=r", "experiment.reuse=true", *TINY]
+    first = run(_cfg(*args))
+    saved = json.loads((tmp_path / "r" / "config.json").read_text())
+    del saved["env"]["maps"]  # as written by the code before env.maps existed
+    (tmp_path / "r" / "config.json").write_text(json.dumps(saved))
+    assert run(_cfg(*args)) == first  # finished: kept, not refused
+    saved["env"]["t_max"] = 7  # a setting the saved run did have, with another value: refused
+    (tmp_path / "r" / "config.json").write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match=r"holds a run of another config .*env.t_max"):
+        run(_cfg(*args))
+
+
 def test_episode_budget_stops_training(tmp_path):
     from uavlae.train import run
 

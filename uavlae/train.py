@@ -96,16 +96,21 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
     """With ``experiment.reuse``: what ``cfg.run_dir`` holds of this run. ``("done", final
     metrics)`` for a finished run, ``("resume", None)`` for one with a checkpoint, ``("new",
     None)`` otherwise. A run_dir that holds a run of another config is an error (a sweep re-run
-    with changed settings must not mix the two)."""
+    with changed settings must not mix the two). Settings the saved config lacks (added to the
+    code after the run was made, with defaults that keep the earlier behaviour) do not count as
+    a difference; they are logged."""
     run_dir = Path(cfg.run_dir)
     saved_file = run_dir / "config.json"
     if not cfg.experiment.reuse or not saved_file.is_file():
         return "new", None
-    wanted = _comparable(_resolved(cfg))
-    saved = _comparable(json.loads(saved_file.read_text()))
-    if wanted != saved:
-        want, have = flatten_keys(wanted), flatten_keys(saved)
-        changed = sorted(k for k in set(want) | set(have) if want.get(k) != have.get(k))
+    want = flatten_keys(_comparable(_resolved(cfg)))
+    have = flatten_keys(_comparable(json.loads(saved_file.read_text())))
+    added = sorted(set(want) - set(have))
+    if added:
+        log.warning("%s was made before these settings existed; reusing it as if at their values now: %s",
+                    run_dir, {k: want[k] for k in added})
+    changed = sorted(k for k in set(want) | set(have) if k not in added and want.get(k) != have.get(k))
+    if changed:
         raise ValueError(
             f"{run_dir} holds a run of another config (differs in {changed[:8]}); "
             "remove it or set experiment.root elsewhere"
