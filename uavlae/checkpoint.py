@@ -74,9 +74,12 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
     raise FileNotFoundError(f"no checkpoint at {path} (looked for {LAST} / {PREV} in it and in its checkpoints/)")
 
 
-def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], Path]:
+def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu",
+                    mmap: bool = False) -> tuple[dict[str, Any], Path]:
     """Load the checkpoint at ``path`` (file or run dir). A damaged ``last.pt`` falls back to
-    ``prev.pt``. Returns ``(state, file)``."""
+    ``prev.pt``. Returns ``(state, file)``. ``mmap``: map the tensors from the file instead of
+    reading them (``torch.load(mmap=True)``), for a reader that needs only part of it: an
+    evaluation reads the actor, not the replay buffer that makes a checkpoint gigabytes."""
     p = resolve_checkpoint(path)
     candidates = [p]
     if p.name == LAST and (p.parent / PREV).is_file():
@@ -84,7 +87,7 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     err: Exception | None = None
     for c in candidates:
         try:
-            return torch.load(c, map_location=map_location, weights_only=False), c
+            return torch.load(c, map_location=map_location, weights_only=False, mmap=mmap), c
         except Exception as e:  # a torn or truncated file: try the previous one
             err = e
     raise RuntimeError(f"could not read any checkpoint at {path}: {err}") from err

@@ -221,7 +221,7 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     else:
         if not cfg.checkpoint:
             raise ValueError("uavlae.evaluate needs checkpoint=PATH (a checkpoint file or a run dir)")
-        state, file = load_checkpoint(cfg.checkpoint)
+        state, file = load_checkpoint(cfg.checkpoint, mmap=True)
         saved = OmegaConf.create(state["config"])
         run_dir = run_dir_of(file)
         env_cfg = overridden_env(saved.env, overrides) if overrides else make_env_config(saved.env)
