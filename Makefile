@@ -169,13 +169,14 @@ experiments-llm: $(STAMP)
 # results/llm_alone.{json,md} (docs/baselines.md, "llm")
 LLM_ALONE_BUDGET ?= 600
 LLM_ALONE_DIR ?= runs/llm_alone
+LLM_ALONE_EXTRA ?=
 LLM_ALONE_RUN = +exp=llm run_dir=$(LLM_ALONE_DIR) trainer.eval_chunk=1 trainer.llm_call_budget=$(LLM_ALONE_BUDGET) \
-	llm.cache_path=$(LLM_ALONE_DIR)/llm_cache.sqlite logger.wandb.mode=disabled
+	llm.cache_path=$(LLM_ALONE_DIR)/llm_cache.sqlite logger.wandb.mode=disabled $(LLM_ALONE_EXTRA)
 .PHONY: llm-alone
 llm-alone: $(STAMP)
 	$(BIN)/python -m uavlae.train $(LLM_ALONE_RUN)
 	$(BIN)/python -m experiments.llm_alone_table $(LLM_ALONE_DIR) --out results/llm_alone \
-		--command "make llm-alone LLM_ALONE_BUDGET=$(LLM_ALONE_BUDGET)"
+		--command "make llm-alone LLM_ALONE_BUDGET=$(LLM_ALONE_BUDGET) $(if $(LLM_ALONE_EXTRA),LLM_ALONE_EXTRA='$(LLM_ALONE_EXTRA)')"
 
 experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
