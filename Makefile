@@ -182,15 +182,15 @@ experiments-report: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT)
 
 # What a profile's runs leave in the repository: the report (tables, figures, report.md) in
-# results/<profile>/, and the runs' own records without checkpoints, wandb files or pictures in
-# results/<profile>/runs.tar.xz, so that the report can be rebuilt and extended elsewhere:
+# results/<profile>/, and the runs' own records in results/<profile>/runs.tar.xz (no wandb files
+# or pictures; finished runs' checkpoints without their replay buffers: experiments/archive.py),
+# so that the report can be rebuilt and extended elsewhere:
 #   mkdir -p runs && tar xJf results/quick/runs.tar.xz -C runs && make quick EXP_ARGS=seed=3
 # (finished runs are kept as they are; only what is missing runs)
 RESULTS_DIR ?= results/$(PROFILE)
 experiments-results: $(STAMP)
 	$(BIN)/python -m experiments.report $(EXP_ROOT) --out $(RESULTS_DIR)
-	tar cJf $(RESULTS_DIR)/runs.tar.xz --exclude=checkpoints --exclude=wandb --exclude='*.png' --exclude='*.pdf' \
-		--exclude=report -C $(dir $(abspath $(EXP_ROOT))) $(notdir $(abspath $(EXP_ROOT)))
+	$(BIN)/python -m experiments.archive $(EXP_ROOT) $(RESULTS_DIR)/runs.tar.xz
 
 # quick: the grids of the sensitivity figures cut to the default and one value on each side, the
 # profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in

@@ -270,6 +270,34 @@ def test_report_on_synthetic_runs(tmp_path):
     assert final2["cpo"]["n_seeds"] == 1 and final2["cpo"]["DCR"] == pytest.approx(0.3)
 
 
+def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tmp_path):
+    import tarfile
+
+    import torch
+
+    from experiments.archive import archive
+
+    root = tmp_path / "quick"
+    done, paused = root / "train" / "sac" / "seed0", root / "train" / "sac" / "seed1"
+    for d in (done, paused):
+        (d / "checkpoints").mkdir(parents=True)
+        (d / "wandb").mkdir()
+        (d / "wandb" / "run.wandb").write_text("x")
+        (d / "config.json").write_text("{}")
+        (d / "trajectory_0.png").write_bytes(b"png")
+        torch.save({"learner": {"w": torch.ones(3)}, "replay_buffer": {"obs": torch.zeros(1000, 8)}},
+                   d / "checkpoints" / "last.pt")
+    (done / "final_metrics.json").write_text("{}")
+    names = archive(root, tmp_path / "runs.tar.xz")
+    assert sorted(names) == ["quick/train/sac/seed0/checkpoints/last.pt", "quick/train/sac/seed0/config.json",
+                             "quick/train/sac/seed0/final_metrics.json", "quick/train/sac/seed1/config.json"]
+    out = tmp_path / "out"
+    with tarfile.open(tmp_path / "runs.tar.xz") as tar:
+        tar.extractall(out, filter="data")
+    lean = torch.load(out / "quick/train/sac/seed0/checkpoints/last.pt", weights_only=False)
+    assert lean["replay_buffer"] is None and torch.equal(lean["learner"]["w"], torch.ones(3))
+
+
 def test_report_cli_names_a_missing_dir(tmp_path):
     res = subprocess.run([sys.executable, "-m", "experiments.report", str(tmp_path / "nope")], cwd=REPO_ROOT,
                          capture_output=True, text=True, timeout=120)
