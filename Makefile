@@ -183,7 +183,7 @@ experiments-report: $(STAMP)
 
 # What a profile's runs leave in the repository: the report (tables, figures, report.md) in
 # results/<profile>/, and the runs' own records in results/<profile>/runs.tar.xz (no wandb files
-# or pictures; finished runs' checkpoints without their replay buffers: experiments/archive.py),
+# or pictures; finished runs' checkpoints without replay buffer or collector: experiments/archive.py),
 # so that the report can be rebuilt and extended elsewhere:
 #   mkdir -p runs && tar xJf results/quick/runs.tar.xz -C runs && make quick EXP_ARGS=seed=3
 # (finished runs are kept as they are; only what is missing runs)

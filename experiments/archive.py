@@ -3,8 +3,9 @@
 What the report reads (configs, metadata, final metrics, scalar logs, evaluation records, the
 evaluation sets, Hydra's multirun records) goes in as it is. Left out: wandb files, pictures
 and the report, which are rebuilt. A finished training run's checkpoint goes in without its
-replay buffer (``replay_buffer`` set to None: megabytes instead of gigabytes), which is all
-that ``uavlae.evaluate`` needs, so the scenario sweeps can still evaluate it after
+replay buffer and its collector's state (both set to None: under a megabyte instead of 1.5 GB);
+the learner, counters and config left are all that ``uavlae.evaluate`` reads, so the scenario
+sweeps can still evaluate it after
 
     mkdir -p runs && tar xJf OUT.tar.xz -C runs
 
@@ -29,7 +30,7 @@ SKIP_SUFFIXES = {".png", ".pdf"}
 
 def _lean_checkpoint(path: Path) -> bytes:
     state = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
-    state["replay_buffer"] = None
+    state["replay_buffer"] = state["collector"] = None
     buf = io.BytesIO()
     torch.save(state, buf)
     return buf.getvalue()

@@ -285,7 +285,8 @@ def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tm
         (d / "wandb" / "run.wandb").write_text("x")
         (d / "config.json").write_text("{}")
         (d / "trajectory_0.png").write_bytes(b"png")
-        torch.save({"learner": {"w": torch.ones(3)}, "replay_buffer": {"obs": torch.zeros(1000, 8)}},
+        torch.save({"learner": {"w": torch.ones(3)}, "replay_buffer": {"obs": torch.zeros(1000, 8)},
+                    "collector": {"env": torch.zeros(64, 8)}},
                    d / "checkpoints" / "last.pt")
     (done / "final_metrics.json").write_text("{}")
     names = archive(root, tmp_path / "runs.tar.xz")
@@ -295,7 +296,8 @@ def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tm
     with tarfile.open(tmp_path / "runs.tar.xz") as tar:
         tar.extractall(out, filter="data")
     lean = torch.load(out / "quick/train/sac/seed0/checkpoints/last.pt", weights_only=False)
-    assert lean["replay_buffer"] is None and torch.equal(lean["learner"]["w"], torch.ones(3))
+    assert lean["replay_buffer"] is None and lean["collector"] is None
+    assert torch.equal(lean["learner"]["w"], torch.ones(3))
 
 
 def test_report_cli_names_a_missing_dir(tmp_path):
