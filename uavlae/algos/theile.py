@@ -15,7 +15,7 @@ PPO as :mod:`uavlae.algos.ppo` (torchrl's ``ClipPPOLoss`` and ``GAE``, :func:`pp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import torch
@@ -25,13 +25,10 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.modules import NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, adam, load_parts_state_dict, parse_config, parts_state_dict, to_floats
-from uavlae.algos.ppo import (
-    PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, ppo_minibatch_step, run_epochs,
-)
+from uavlae.algos.common import StrictConfig, adam, parse_config
+from uavlae.algos.ppo import PPO, PPOConfig, make_clip_ppo_loss, ppo_minibatch_step
 from uavlae.envs.world import ObservationLayout
 from uavlae.policies.d4 import D4Ensemble, member_spread
 from uavlae.policies.networks import SCALE_AT_ZERO, SCALE_LB, SCALE_MIN, action_bounds
@@ -59,18 +56,13 @@ def make_theile_config(cfg: Any = None, **overrides: Any) -> TheileConfig:
 
 
 @dataclass
-class Theile:
-    """The ``theile`` learner. Build it with :func:`make_theile`."""
+class Theile(PPO):
+    """The ``theile`` learner: PPO (its update, epochs and state) with the members' spread added
+    to every minibatch's loss. Build it with :func:`make_theile`."""
 
     cfg: TheileConfig
-    actor: ProbabilisticActor
-    critic: ValueOperator
-    actor_net: D4Ensemble
-    critic_net: D4Ensemble
-    loss: ClipPPOLoss
-    gae: GAE
-    optimisers: dict[str, torch.optim.Optimizer]
-    num_updates: int = 0
+    actor_net: D4Ensemble = field(kw_only=True)
+    critic_net: D4Ensemble = field(kw_only=True)
 
     def regularizer(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         """The weighted spreads of the members on a minibatch (the terms PPO's loss gets added)."""
@@ -85,36 +77,6 @@ class Theile:
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb, extra_losses=self.regularizer)
-
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """One PPO update on an on-policy batch ``[*B, T]`` (keys as :mod:`uavlae.algos.ppo`)."""
-        _check_on_policy_batch(batch, ("observation", "action", "action_log_prob", ("next", "reward")))
-        with torch.no_grad():
-            batch = self.gae(batch.copy())
-        flat = batch.select(*PPO_TRAIN_KEYS).reshape(-1)
-        logs = run_epochs(flat, self.cfg.epochs, self.cfg.minibatch_size, self._step)
-        self.num_updates += 1
-        logs.update(
-            to_floats(
-                {
-                    "reward_mean_step": batch["next", "reward"].mean(),
-                    "advantage_mean": batch["advantage"].mean(),
-                    "value_target_mean": batch["value_target"].mean(),
-                }
-            )
-        )
-        logs["num_updates"] = float(self.num_updates)
-        return logs
-
-    def _parts(self) -> dict[str, Any]:
-        return {"loss": self.loss, "optimisers": self.optimisers}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Actor and critic (in ``loss``), optimisers, counters."""
-        return parts_state_dict(self._parts(), self.num_updates)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_theile(cfg: TheileConfig | Any, obs_dim: int, action_spec: TensorSpec, layout: ObservationLayout | None = None) -> Theile:
