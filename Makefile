@@ -164,6 +164,19 @@ experiments-llm: $(STAMP)
 		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
 		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
 
+# The baselines at one equal frame budget: theile and wang beside sac, ppo and cpo (and random)
+# on the quick profile's world and evaluation set (results/eval_set_32.json), one seed, 102,400
+# frames each (50 of PPO's 2048-frame batches), evaluated every 25,600 -> results/budget/
+# (theile runs at about 40 frames/s here: most of an hour on one core)
+BUDGET_FRAMES ?= 102400
+BUDGET_METHODS ?= theile,wang,sac,ppo,cpo,random
+.PHONY: baselines-budget
+baselines-budget: $(STAMP)
+	mkdir -p runs/budget/eval_sets && cp -n results/eval_set_32.json runs/budget/eval_sets/train.json
+	$(TRAIN_SWEEP) +sweep=train +profile=quick experiment.root=runs/budget +exp=$(BUDGET_METHODS) seed=0 \
+		trainer.total_frames=$(BUDGET_FRAMES) trainer.eval_every_frames=25600 trainer.checkpoint_every_frames=25600
+	$(MAKE) experiments-results PROFILE=budget EXP_ROOT=runs/budget
+
 # The LLM alone (+exp=llm) on the evaluation set, one scenario at a time, under a call budget per
 # invocation (the same command continues a paused run), then its metrics and cost ->
 # results/llm_alone.{json,md} (docs/baselines.md, "llm")

@@ -335,26 +335,54 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
     return lines
 
 
-def learned_rows(train_rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """A method has learned when its DCR and SLR intervals lie above the random policy's."""
+def final_episodes(run: Run) -> dict[str, list[float]] | None:
+    """The per-episode DCR and SLR of a train run's final evaluation (``eval/frames_<frames>/episodes.csv``:
+    data collected over data held, landed), or None when that file is missing."""
+    f = run.path / "eval" / f"frames_{run.frames:09d}" / "episodes.csv"
+    if not f.is_file():
+        return None
+    rows = list(csv.DictReader(f.open(newline="")))
+    if not rows:
+        return None
+    return {"DCR": [float(r["data_collected"]) / float(r["data_total"]) if float(r["data_total"]) > 0 else 0.0
+                    for r in rows],
+            "SLR": [1.0 if r["landed"] == "True" else 0.0 for r in rows]}
+
+
+def learned_rows(train_rows: list[dict[str, Any]], runs: dict[str, list[Run]] | None = None) -> list[dict[str, Any]]:
+    """A method has learned when its DCR and SLR intervals lie above the random policy's: the 95%
+    intervals over seeds, or, where it or random has one seed only, over the episodes of that
+    seed's final evaluation (the same scenarios for both; per-episode DCR, so its mean can differ
+    a little from the pooled one of the tables)."""
     rand = next((r for r in train_rows if r["method"] == "random"), None)
+    runs = runs or {}
+    rand_eps = final_episodes(runs["random"][0]) if len(runs.get("random", [])) == 1 else None
     out = []
     for r in train_rows:
         if r["method"] in ("random", "heuristic", "llm"):
             continue
         row = {"method": r["method"], "n_seeds": r["n_seeds"]}
+        one_seed = rand is not None and (r["n_seeds"] == 1 or rand["n_seeds"] == 1)
+        eps = final_episodes(runs[r["method"]][0]) if one_seed and len(runs.get(r["method"], [])) == 1 else None
+        episodes = one_seed and eps is not None and rand_eps is not None
         verdicts = []
         for m in ("DCR", "SLR"):
-            row[m] = fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"])
-            row[f"random_{m}"] = fmt_ci(rand[m], rand[f"{m}_lo"], rand[f"{m}_hi"]) if rand else "n/a"
-            if rand is None or math.isnan(r[f"{m}_lo"]) or math.isnan(rand[f"{m}_lo"]):
+            if episodes:
+                ours, theirs = mean_ci(eps[m]), mean_ci(rand_eps[m])
+            else:
+                ours = (r[m], r[f"{m}_lo"], r[f"{m}_hi"])
+                theirs = (rand[m], rand[f"{m}_lo"], rand[f"{m}_hi"]) if rand else (math.nan,) * 3
+            row[m] = fmt_ci(*ours[:3])
+            row[f"random_{m}"] = fmt_ci(*theirs[:3]) if rand else "n/a"
+            if rand is None or math.isnan(ours[1]) or math.isnan(theirs[1]):
                 verdicts.append(None)
             else:
-                verdicts.append(r[f"{m}_lo"] > rand[f"{m}_hi"])
+                verdicts.append(ours[1] > theirs[2])
         if None in verdicts:
-            row["learned"] = "undetermined (needs 2+ seeds of it and of random)"
+            row["learned"] = "undetermined (needs 2+ seeds of it and of random, or one seed's evaluation episodes)"
         else:
-            row["learned"] = "yes" if all(verdicts) else "no"
+            row["learned"] = ("yes" if all(verdicts) else "no") + (
+                f" (one seed: intervals over its {len(eps['DCR'])} evaluation episodes)" if episodes else "")
         out.append(row)
     return out
 
@@ -585,7 +613,7 @@ def build(root: Path, out: Path) -> dict[str, Any]:
     if train_rows:
         table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
               "Mean [95% CI] over seeds of the deterministic actor on the shared evaluation set.")
-        learned = learned_rows(train_rows)
+        learned = learned_rows(train_rows, {k[2]: groups[k] for k in groups if k[0] == "train"})
         _write_csv(out / "learned.csv", learned)
         result["tables"]["learned"] = learned
         md += ["## Learned? (DCR and SLR above the uniform-random policy's, non-overlapping 95% intervals)", "",

@@ -204,6 +204,33 @@ def _synthetic(root: Path) -> None:
         _train_dir(root, "sac", s, _metrics(0.9, 0.9), sweep="sensitivity", point="r8_2", extra_cfg={"env.reward.sigma.7": 2.0})
 
 
+def _episodes(run_dir: Path, frames: int, dcr: list[float], landed: list[bool]) -> None:
+    d = run_dir / "eval" / f"frames_{frames:09d}"
+    d.mkdir(parents=True)
+    rows = ["row,data_collected,data_total,landed"] + [f"{i},{10 * x},10.0,{bool(l)}" for i, (x, l) in enumerate(zip(dcr, landed))]
+    (d / "episodes.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_learned_with_one_seed_compares_the_final_evaluations_episodes(tmp_path):
+    root = tmp_path / "runs"
+    # sac: per-episode DCR 1.0 0.8 0.9 0.9 (mean 0.9, sd 0.08165, t(3) 3.1824: [0.770, 1.030]), all landed
+    _episodes(_train_dir(root, "sac", 0, _metrics(0.9, 1.0)), 1000, [1.0, 0.8, 0.9, 0.9], [True] * 4)
+    # ppo: 0.3 0.0 0.3 0.2 (mean 0.2, sd 0.14142: [-0.025, 0.425]) overlaps random's DCR
+    _episodes(_train_dir(root, "ppo", 0, _metrics(0.2, 1.0)), 1000, [0.3, 0.0, 0.3, 0.2], [True] * 4)
+    # random: 0.1 0.0 0.2 0.1 (mean 0.1, sd 0.08165: [-0.030, 0.230]), never landed ([0, 0])
+    _episodes(_train_dir(root, "random", 0, _metrics(0.1, 0.0), controller="random", frames=0), 0,
+              [0.1, 0.0, 0.2, 0.1], [False] * 4)
+    # ddpg: one seed without its episodes file -> undetermined
+    _train_dir(root, "ddpg", 0, _metrics(0.9, 1.0))
+    rows = {r["method"]: r for r in report.build(root, tmp_path / "out")["tables"]["learned"]}
+    assert rows["sac"]["DCR"] == "0.900 [0.770, 1.030]" and rows["sac"]["SLR"] == "1.000 [1.000, 1.000]"
+    assert rows["sac"]["random_DCR"] == "0.100 [-0.030, 0.230]" and rows["sac"]["random_SLR"] == "0.000 [0.000, 0.000]"
+    assert rows["sac"]["learned"] == "yes (one seed: intervals over its 4 evaluation episodes)"
+    assert rows["ppo"]["DCR"] == "0.200 [-0.025, 0.425]"
+    assert rows["ppo"]["learned"] == "no (one seed: intervals over its 4 evaluation episodes)"
+    assert rows["ddpg"]["learned"].startswith("undetermined")
+
+
 def test_report_on_synthetic_runs(tmp_path):
     import matplotlib
 
