@@ -240,10 +240,13 @@ paper: $(STAMP)
 # least 1M frames: the episodes end at T_max = 1000 steps at the latest). One core for hours;
 # re-running the target resumes it from its last checkpoint.
 LONG_ROOT ?= runs/long
+# LONG_FRAMES=1000000 stops at 1M frames (a run's budget is part of its identity: a run
+# made with one budget is not resumed under another)
+LONG_FRAMES ?= 4000000
 long-sac: $(STAMP)
 	$(BIN)/python -m uavlae.train +exp=sac env=default seed=0 experiment.sweep=long experiment.reuse=true \
 		experiment.root=$(LONG_ROOT) run_dir=$(LONG_ROOT)/sac_default/seed0 trainer.env_batch_size=64 \
-		trainer.utd_ratio=0.25 trainer.compile_env=true trainer.total_frames=4000000 \
+		trainer.utd_ratio=0.25 trainer.compile_env=true trainer.total_frames=$(LONG_FRAMES) \
 		trainer.total_episodes=4000 trainer.eval_every_frames=100000 trainer.checkpoint_every_frames=200000 trainer.keep_checkpoints=1 \
 		trainer.eval_episodes=32 trainer.progress_bar=false
 	$(BIN)/python -m experiments.report $(LONG_ROOT)
