@@ -167,7 +167,7 @@ experiments-llm: $(STAMP)
 # The baselines at one equal frame budget: theile and wang beside sac, ppo and cpo (and random)
 # on the quick profile's world and evaluation set (results/eval_set_32.json), one seed, 102,400
 # frames each (50 of PPO's 2048-frame batches), evaluated every 25,600 -> results/budget/
-# (theile runs at about 40 frames/s here: most of an hour on one core)
+# (theile, the slowest learner per frame, sets the wall clock)
 BUDGET_FRAMES ?= 102400
 BUDGET_METHODS ?= theile,wang,sac,ppo,cpo,random
 .PHONY: baselines-budget

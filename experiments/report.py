@@ -338,7 +338,7 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
 def final_episodes(run: Run) -> dict[str, list[float]] | None:
     """The per-episode DCR and SLR of a train run's final evaluation (``eval/frames_<frames>/episodes.csv``:
     data collected over data held, landed), or None when that file is missing."""
-    f = run.path / "eval" / f"frames_{run.frames:09d}" / "episodes.csv"
+    f = run.path / "eval" / f"frames_{run.frames:09d}" / "episodes.csv"  # uavlae.train's evaluation folder
     if not f.is_file():
         return None
     rows = list(csv.DictReader(f.open(newline="")))
@@ -356,15 +356,18 @@ def learned_rows(train_rows: list[dict[str, Any]], runs: dict[str, list[Run]] | 
     a little from the pooled one of the tables)."""
     rand = next((r for r in train_rows if r["method"] == "random"), None)
     runs = runs or {}
-    rand_eps = final_episodes(runs["random"][0]) if len(runs.get("random", [])) == 1 else None
+
+    def one_seed_episodes(method: str) -> dict[str, list[float]] | None:
+        return final_episodes(runs[method][0]) if len(runs.get(method, [])) == 1 else None
+
+    rand_eps = one_seed_episodes("random")
     out = []
     for r in train_rows:
         if r["method"] in ("random", "heuristic", "llm"):
             continue
         row = {"method": r["method"], "n_seeds": r["n_seeds"]}
-        one_seed = rand is not None and (r["n_seeds"] == 1 or rand["n_seeds"] == 1)
-        eps = final_episodes(runs[r["method"]][0]) if one_seed and len(runs.get(r["method"], [])) == 1 else None
-        episodes = one_seed and eps is not None and rand_eps is not None
+        eps = one_seed_episodes(r["method"]) if rand_eps is not None else None
+        episodes = eps is not None
         verdicts = []
         for m in ("DCR", "SLR"):
             if episodes:
