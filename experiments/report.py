@@ -146,7 +146,16 @@ class Run:
     packages: dict[str, Any] = field(default_factory=dict)
     profile: str = ""
     world: str = ""
+    machine: str = ""  # "CPU, N cores" from the run's metadata; "" where it was not recorded
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def machine_label(meta: dict[str, Any]) -> str:
+    m = meta.get("machine") or {}
+    if not m:
+        return ""
+    label = f"{m.get('cpu', 'unknown CPU')}, {m.get('logical_cores', '?')} cores"
+    return label + (f", {m['gpu']}" if m.get("gpu") else "")
 
 
 def world_label(env: dict[str, Any]) -> str:
@@ -219,6 +228,7 @@ def _train_run(d: Path) -> Run:
         updates=int(final.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
         dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or shlex.join(meta.get("argv", []))),
         packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
+        machine=machine_label(meta),
         extra={"wall_s": final.get("wall_s", final.get("llm/wall_s")),
                "advisor_calls": int(final["llm/http_calls"]) if "llm/http_calls" in final else _advisor_calls(d)},
     )
@@ -249,9 +259,16 @@ def _eval_run(d: Path) -> Run:
         config={"env": rec.get("env", {})}, frames=int(spec.get("frames", 0)), episodes=int(rec.get("episodes_trained", 0)),
         updates=int(rec.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
         dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or ""), packages=meta.get("packages") or {},
-        profile=str(ex.get("profile") or ""), world=world_label(rec.get("env", {})),
+        profile=str(ex.get("profile") or ""), world=world_label(rec.get("env", {})), machine=machine_label(meta),
         extra={"n_scenarios": rec.get("n_scenarios"), "wall_s": rec.get("wall_s")},
     )
+
+
+def machines_line(runs: list[Run]) -> str:
+    """The machines the runs record, and how many runs record none (those made before runs did)."""
+    names = sorted({r.machine for r in runs if r.machine})
+    missing = sum(1 for r in runs if not r.machine)
+    return "; ".join(names + ([f"not recorded for {missing} of {len(runs)} runs"] if missing else [])) or "none"
 
 
 def collect(root: Path) -> tuple[list[Run], list[tuple[str, str]]]:
@@ -716,7 +733,8 @@ def build(root: Path, out: Path) -> dict[str, Any]:
         f"Profile(s): {', '.join(profiles) or 'none'}  ",
         f"World(s): {'; '.join(worlds) or 'none'}  ",
         f"Runs: {len(runs)} collected, {len(skipped)} skipped (below)  ",
-        f"Commits: {', '.join(sorted({r.commit + ('+dirty' if r.dirty else '') for r in runs})) or 'none'}",
+        f"Commits: {', '.join(sorted({r.commit + ('+dirty' if r.dirty else '') for r in runs})) or 'none'}  ",
+        f"Machine(s): {machines_line(runs)}",
         "",
         "Intervals: 95% confidence intervals of the mean over seeds (Student's t); a single seed has none. "
         "DCR and SLR: higher is better; CR, RVR and ECR: lower is better.",

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -152,7 +153,8 @@ def _train_dir(root: Path, method: str, seed: int, m: dict[str, float], *, sweep
             node[last] = v
     (d / "config.json").write_text(json.dumps(cfg))
     (d / "meta.json").write_text(json.dumps({"git": {"commit": "abcdef1234567", "dirty": False},
-                                              "packages": {"torch": "2.13.0+cpu"}, "command": f"python -m uavlae.train +exp={method} seed={seed}"}))
+                                              "packages": {"torch": "2.13.0+cpu"}, "machine": {"cpu": "Test CPU", "logical_cores": 2},
+                                              "command": f"python -m uavlae.train +exp={method} seed={seed}"}))
     if final:
         (d / "final_metrics.json").write_text(json.dumps({"frames": frames, "episodes": frames // 100, "updates": 5,
                                                           **{f"eval/{k}": v for k, v in m.items()}}))
@@ -284,6 +286,8 @@ def test_report_on_synthetic_runs(tmp_path):
     md = (out / "report.md").read_text()
     assert "learning-aid world" in md and "| ddpg |" in md and "train/ppo/seed1`: unfinished" in md
     assert "0.700 [0.203, 1.197]" in md and "torch | 2.13.0+cpu" in md
+    # 15 train runs record their machine; the 6 evaluations (their records made without one) do not
+    assert "Machine(s): Test CPU, 2 cores; not recorded for 6 of 21 runs" in md
     runs_csv = (out / "runs.csv").read_text()
     assert "python -m uavlae.train +exp=sac seed=0" in runs_csv and "abcdef1234" in runs_csv
     assert final["sac"]["advisor_calls"] == "7"
@@ -442,6 +446,7 @@ def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
         assert final["frames"] == (128 if method == "sac" else 0)
     meta = json.loads((root / "train" / "sac" / "seed0" / "meta.json").read_text())
     assert meta["command"].startswith("python -m uavlae.train ") and "+exp=sac" in meta["command"]
+    assert meta["machine"]["logical_cores"] == os.cpu_count() and meta["machine"]["torch"] == torch.__version__
     _sweep("-m", "uavlae.evaluate", "-m", "+sweep=scenario_n_ou", "+exp=sac", "seed=0", "env.ou.count.max=3,7",
            f"experiment.root={root}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=1")
     for k in (3, 7):
@@ -452,6 +457,7 @@ def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
     _sweep("-m", "experiments.report", str(root))
     md = (root / "report" / "report.md").read_text()
     assert "python -m uavlae.train -m +sweep=train +exp=sac,random seed=0" in md
+    assert f"Machine(s): {meta['machine']['cpu']}, {os.cpu_count()} cores\n" in md  # every run records it: no "not recorded"
     assert "Fig. 5: metrics against N_OU" in md and (root / "report" / "fig5_scenario_n_ou.pdf").is_file()
     rows = (root / "report" / "runs.csv").read_text().splitlines()
     assert len(rows) == 1 + 2 + 2

@@ -469,11 +469,14 @@ def wandb_tags(tags: Any, ex: ExperimentConfig, seed: int) -> list[str]:
 
 
 def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:
-    """The commit, the package versions and the command: for a Hydra job (a sweep's too, whose
+    """The commit, the package versions, the machine and the command: for a Hydra job (a sweep's too, whose
     worker's argv is the launcher's) the one command that reruns this run alone."""
     import shlex
 
-    meta: dict[str, Any] = {"git": git_info(), "packages": package_versions(), "argv": list(sys.argv), "pid": os.getpid()}
+    from uavlae.machine import describe_machine
+
+    meta: dict[str, Any] = {"git": git_info(), "packages": package_versions(), "machine": describe_machine(),
+                            "argv": list(sys.argv), "pid": os.getpid()}
     try:
         from hydra.core.hydra_config import HydraConfig
 
