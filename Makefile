@@ -153,10 +153,12 @@ experiments-sensitivity: $(STAMP)
 
 # The LLM methods: trained (the LLM acts while training), then evaluated like the others (their
 # actor alone: no LLM call); the LLM alone flies the training evaluation set under LLM_ALONE_ARGS.
+# LLM_ALONE=0 leaves the LLM alone out (make llm-alone flies it on its own budget).
 LLM_ALONE_ARGS ?=
+LLM_ALONE ?= 1
 experiments-llm: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
-	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS)
+	$(if $(filter 1,$(LLM_ALONE)),$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS))
 	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS)
 	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS)
 	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS)
@@ -221,11 +223,14 @@ quick: $(STAMP)
 	$(MAKE) experiments-sensitivity $(QUICK_SENS)
 	$(MAKE) experiments-results PROFILE=quick
 
-# the LLM figures at the quick size: one seed, 20k frames a run (each LLM answer takes seconds
-# here), the LLM alone cut at 300 steps an episode (one call a step: 32 x 1000 calls uncut)
-QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=20000 trainer.compile_env=false
+# The LLM figures at the quick size: one seed, 50,176 frames a run (49 batches: the frames of the
+# quick SAC runs' first evaluation, so each LLM run has plain SAC beside it at equal frames) and a
+# budget of 200 LLM rows a run (each answer takes about 1.3 s here; the actor acts once it is
+# spent), so a run costs about 10 minutes. The LLM alone is left out (one call per row and step:
+# 32 x 1000 calls for one evaluation); `make llm-alone` flies it on its own budget.
+QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=200
 quick-llm: $(STAMP)
-	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE_ARGS="trainer.eval_chunk=4 trainer.llm_call_budget=2000"
+	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE=0
 	$(MAKE) experiments-report PROFILE=quick
 
 paper: $(STAMP)
