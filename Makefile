@@ -225,10 +225,10 @@ quick: $(STAMP)
 
 # The LLM figures at the quick size: one seed, 50,176 frames a run (49 batches: the frames of the
 # quick SAC runs' first evaluation, so each LLM run has plain SAC beside it at equal frames) and a
-# budget of 200 LLM rows a run (each answer takes about 1.3 s here; the actor acts once it is
-# spent), so a run costs about 10 minutes. The LLM alone is left out (one call per row and step:
+# budget of 100 LLM rows a run (the actor acts once it is spent): a row of the early, random
+# flight takes about 3.5 s here with its re-asks, two runs at a time, so a run costs about 11 minutes. The LLM alone is left out (one call per row and step:
 # 32 x 1000 calls for one evaluation); `make llm-alone` flies it on its own budget.
-QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=200
+QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
 quick-llm: $(STAMP)
 	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE=0
 	$(MAKE) experiments-report PROFILE=quick
