@@ -30,7 +30,7 @@ import shlex
 import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,21 +50,22 @@ SCENARIO_SWEEPS = {  # sweep -> (count, figure)
     "scenario_n_bz": ("N_BZ", "fig8"),
     "scenario_n_rz": ("N_RZ", "fig9"),
 }
-# The sensitivity axes (conf/sweep/sens_*.yaml): (name, dotted config key, figure).
+# The sensitivity axes (conf/sweep/sens_*.yaml): (name, dotted config key, figure, label).
 SENSITIVITY_AXES = (
-    ("actor_lr", "algo.actor_lr", "fig11"),
-    ("critic_lr", "algo.critic_lr", "fig11"),
-    ("batch_size", "trainer.batch_size", "fig11"),
-    ("r1", "env.reward.sigma.0", "fig12"),
-    ("r2", "env.reward.sigma.1", "fig12"),
-    ("r5", "env.reward.sigma.4", "fig12"),
-    ("r8", "env.reward.sigma.7", "fig12"),
+    ("actor_lr", "algo.actor_lr", "fig11", "actor_lr"),
+    ("critic_lr", "algo.critic_lr", "fig11", "critic_lr"),
+    ("batch_size", "trainer.batch_size", "fig11", "batch_size"),
+    ("r1", "env.reward.sigma.0", "fig12", "r1"),
+    ("r2", "env.reward.sigma.1", "fig12", "r2"),
+    ("r5", "env.reward.sigma.4", "fig12", "r5"),
+    ("r8", "env.reward.sigma.7", "fig12", "r8"),
 )
-# The one-key sweeps of the LLM figures: sweep -> (config key, figure, label).
-POINT_SWEEPS = {
-    "llm_dth": ("advisor.d_th", "fig13", "d_th (m)"),
-    "llm_prompt": ("llm.prompt_ablation", "fig14", "prompt"),
-}
+# The LLM sweeps' axes (conf/sweep/llm_dth.yaml, llm_prompt.yaml): one folder per setting, like
+# the sensitivity sweeps; (name, dotted config key, figure, label).
+LLM_AXES = (
+    ("d_th", "advisor.d_th", "fig13", "d_th (m)"),
+    ("prompt", "llm.prompt_ablation", "fig14", "prompt"),
+)
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">", "h", "p")
 LINESTYLES = ("-", "--", "-.", ":")
 
@@ -678,43 +679,21 @@ def build(root: Path, out: Path) -> dict[str, Any]:
         result["figures"] += fig_radar(rows, style, out, note)
         md += ["![fig10](fig10_summary_radar.png)", ""]
 
-    # Figs. 11-12: one factor at a time around the defaults
-    sens = [r for r in runs if r.sweep == "sensitivity"]
-    if sens:
-        defaults = {name: _select(_default_config(sens), key) for name, key, _ in SENSITIVITY_AXES}
-        for fig in ("fig11", "fig12"):
-            axes = [(n, k) for n, k, f in SENSITIVITY_AXES if f == fig]
-            for name, key in axes:
-                others = [(k2, defaults[n2]) for n2, k2, _ in SENSITIVITY_AXES if n2 != name]
-                on_axis = [r for r in sens if all(_select(r.config, k2) == v for k2, v in others)]
-                if len({_select(r.config, key) for r in on_axis}) < 2:
-                    continue
-                by: dict[tuple[Any, str], list[Run]] = defaultdict(list)
-                for r in on_axis:
-                    by[(_select(r.config, key), r.method)].append(r)
-                rows = [aggregate_rows(v, {name: x, "method": m}) for (x, m), v in
-                        sorted(by.items(), key=lambda kv: (float(kv[0][0]), method_key(kv[0][1])))]
-                table(f"{fig}_sensitivity_{name}", rows, [name, "method"], f"{fig.replace('fig', 'Fig. ')}: sensitivity to {name}")
-                result["figures"] += fig_lines(rows, name, name, f"{fig.replace('fig', 'Fig. ')}: sensitivity to {name}",
-                                               style, out, f"{fig}_sensitivity_{name}", note,
-                                               logx=name.endswith("lr") or name == "batch_size")
-                md += [f"![{name}]({fig}_sensitivity_{name}.png)", ""]
-
-    # Figs. 13-14
-    for sweep, (key, fig, label) in POINT_SWEEPS.items():
-        rs = [r for r in runs if r.sweep == sweep]
-        if not rs:
-            continue
-        by = defaultdict(list)
-        for r in rs:
-            by[(_select(r.config, key), r.method)].append(r)
-        categorical = any(isinstance(x, str) for x, _ in by)
-        rows = [aggregate_rows(v, {label: x, "method": m}) for (x, m), v in
-                sorted(by.items(), key=lambda kv: (str(kv[0][0]) if categorical else float(kv[0][0]), kv[0][1]))]
-        table(f"{fig}_{sweep}", rows, [label, "method"], f"{fig.replace('fig', 'Fig. ')}: {label}")
-        result["figures"] += fig_lines(rows, label, label, f"{fig.replace('fig', 'Fig. ')}: {label}", style, out,
-                                       f"{fig}_{sweep}", note, categorical=categorical)
-        md += [f"![{fig}]({fig}_{sweep}.png)", ""]
+    # Figs. 11-12 and 13-14: one factor at a time around the defaults
+    for sweep, axes_ in (("sensitivity", SENSITIVITY_AXES), ("llm_setting", LLM_AXES)):
+        for name, label, fig, rows in one_factor_rows([r for r in runs if r.sweep == sweep], axes_):
+            categorical = any(isinstance(r[label], str) for r in rows)
+            stem = f"{fig}_{sweep}_{name}"
+            title = f"{fig.replace('fig', 'Fig. ')}: sensitivity to {label}"
+            table(stem, rows, [label, "method"], title)
+            result["figures"] += fig_lines(rows, label, label, title, style, out, stem, note, categorical=categorical,
+                                           logx=name.endswith("lr") or name == "batch_size")
+            md += [f"![{name}]({stem}.png)", ""]
+    equal = equal_frames_rows(runs)
+    if equal:
+        table("llm_equal_frames", equal, ["method", "setting"], "The LLM runs beside plain SAC at equal frames",
+              "Each LLM run's final evaluation, and the evaluation of the train sweep's plain SAC runs at the same "
+              "frame count (their learning curve's point): what the LLM's transitions changed at that budget.")
 
     # the long run(s): one method, one seed, its curve and final evaluation
     long_runs = [r for r in runs if r.sweep == "long"]
@@ -757,25 +736,53 @@ def build(root: Path, out: Path) -> dict[str, Any]:
     return result
 
 
-def _default_config(sens: list[Run]) -> dict[str, Any]:
-    """The sensitivity sweeps' default setting: per axis, the value most of its runs share."""
-    cfg: dict[str, Any] = {}
-    for name, key, _ in SENSITIVITY_AXES:
-        vals = [json.dumps(_select(r.config, key)) for r in sens]
-        best = max(set(vals), key=vals.count)
-        node = cfg
-        parts = key.split(".")
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        node[parts[-1]] = json.loads(best)
-    # list indices: store the sigma entries as a list long enough for their indices
-    sig = cfg.get("env", {}).get("reward", {}).get("sigma")
-    if isinstance(sig, dict):
-        arr = [None] * (max(int(k) for k in sig) + 1)
-        for k, v in sig.items():
-            arr[int(k)] = v
-        cfg["env"]["reward"]["sigma"] = arr
-    return cfg
+def one_factor_rows(runs: list[Run], axes: tuple[tuple[str, str, str, str], ...]
+                    ) -> list[tuple[str, str, str, list[dict[str, Any]]]]:
+    """The runs of a one-factor-at-a-time sweep, per axis: those with every other axis at its
+    default (the value most runs share), aggregated per (value, method); axes with fewer than two
+    values are left out. Returns (name, label, figure, rows) per axis."""
+    if not runs:
+        return []
+    defaults = {}
+    for _, key, _, _ in axes:
+        vals = [json.dumps(_select(r.config, key)) for r in runs]
+        defaults[key] = json.loads(max(set(vals), key=vals.count))
+    out = []
+    for name, key, fig, label in axes:
+        on_axis = [r for r in runs if all(_select(r.config, k) == v for k, v in defaults.items() if k != key)]
+        by: dict[tuple[Any, str], list[Run]] = defaultdict(list)
+        for r in on_axis:
+            by[(_select(r.config, key), r.method)].append(r)
+        if len({x for x, _ in by}) < 2:
+            continue
+        numeric = all(isinstance(x, (int, float)) for x, _ in by)
+        order = sorted(by.items(), key=lambda kv: ((float(kv[0][0]) if numeric else str(kv[0][0])), method_key(kv[0][1])))
+        out.append((name, label, fig, [aggregate_rows(v, {label: x, "method": m}) for (x, m), v in order]))
+    return out
+
+
+def equal_frames_rows(runs: list[Run]) -> list[dict[str, Any]]:
+    """Every run whose advisor is an LLM, and beside each frame count they stopped at, the train
+    sweep's plain SAC runs evaluated at that count (``eval/frames_<n>/metrics.json`` of their
+    curve), so a short LLM run is read against SAC at its own budget, not at SAC's end."""
+    llm = [r for r in runs if r.kind == "train" and (r.config.get("advisor") or {}).get("kind") == "llm"
+           and r.config.get("controller", "learner") == "learner"]
+    sac = [r for r in runs if r.kind == "train" and r.sweep == "train" and r.method == "sac"]
+    rows = []
+    for frames in sorted({r.frames for r in llm}):
+        at = []
+        for r in sac:
+            f = r.path / "eval" / f"frames_{frames:09d}" / "metrics.json"
+            if f.is_file():
+                at.append(replace(r, metrics=_metrics_of(_read_json(f)), frames=frames, episodes=0,
+                                              extra={}))
+        if at:
+            rows.append(aggregate_rows(at, {"method": "sac", "setting": f"train sweep, its evaluation at {frames} frames"}))
+            rows[-1]["episodes"] = ""
+        here = group([r for r in llm if r.frames == frames])
+        for sweep, point, method in sorted(here, key=lambda k: (method_key(k[2]), k[0], k[1])):
+            rows.append(aggregate_rows(here[(sweep, point, method)], {"method": method, "setting": f"{sweep}/{point}"}))
+    return rows
 
 
 def _fig_long(r: Run, style: Style, out: Path, note: str) -> list[str]:

@@ -92,6 +92,15 @@ def test_sensitivity_runs_share_the_default_point():
     assert q.experiment.profile == "quick" and q.env.reward.progress_weight > 0
 
 
+def test_llm_sweeps_share_the_complete_prompt_at_15_m():
+    a = _cfg("+sweep=llm_dth", "+exp=sac_llm", "advisor.d_th=15.0")
+    b = _cfg("+sweep=llm_prompt", "+exp=sac_llm", "llm.prompt_ablation=none")
+    c = _cfg("+sweep=llm_prompt", "+exp=sac_llm", "llm.prompt_ablation=no_safety")
+    d = _cfg("+sweep=llm_dth", "+exp=sac_llm", "advisor.d_th=5.0")
+    assert a.run_dir == b.run_dir == "runs/experiments/llm_setting/d_th=15.0_prompt=none/sac_llm/seed0"
+    assert c.run_dir.endswith("d_th=15.0_prompt=no_safety/sac_llm/seed0") and d.run_dir.endswith("d_th=5.0_prompt=none/sac_llm/seed0")
+
+
 @pytest.mark.parametrize("launcher, target", [
     ("local", "JoblibLauncher"), ("ray_local", "RayLauncher"), ("slurm", "SlurmLauncher"),
 ])
@@ -204,6 +213,42 @@ def _synthetic(root: Path) -> None:
         _train_dir(root, "sac", s, _metrics(0.6 + 0.2 * s, 0.5), sweep="sensitivity", point="default")
         _train_dir(root, "sac", s, _metrics(0.2, 0.1 * s), sweep="sensitivity", point="alr1e-3", extra_cfg={"algo.actor_lr": 1e-3})
         _train_dir(root, "sac", s, _metrics(0.9, 0.9), sweep="sensitivity", point="r8_2", extra_cfg={"env.reward.sigma.7": 2.0})
+
+
+def _llm_run(root: Path, d_th: float, prompt: str, dcr: float, frames: int = 500) -> Path:
+    d = _train_dir(root, "sac_llm", 0, _metrics(dcr, 0.0), sweep="llm_setting", point=f"d_th={d_th}_prompt={prompt}",
+                   frames=frames, total=frames)
+    cfg = json.loads((d / "config.json").read_text())
+    cfg["advisor"], cfg["llm"] = {"kind": "llm", "d_th": d_th}, {"prompt_ablation": prompt}
+    (d / "config.json").write_text(json.dumps(cfg))
+    return d
+
+
+def test_llm_axes_and_the_runs_beside_plain_sac_at_equal_frames(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    root = tmp_path / "runs"
+    # d_th 5 / 15 / 25 with the complete prompt; no_data and no_compliance at 15 m (the defaults: the
+    # values most runs share); a no_safety run at 5 m is on neither axis
+    for d_th, prompt, dcr in ((5.0, "none", 0.1), (15.0, "none", 0.3), (25.0, "none", 0.5), (15.0, "no_data", 0.2),
+                              (15.0, "no_compliance", 0.4), (5.0, "no_safety", 0.9)):
+        _llm_run(root, d_th, prompt, dcr)
+    # plain SAC, two seeds, run to 1000 frames; its evaluation at 500 frames: DCR 0.2 and 0.4
+    for s, dcr in ((0, 0.2), (1, 0.4)):
+        d = _train_dir(root, "sac", s, _metrics(0.8, 0.8))
+        (d / "eval" / "frames_000000500").mkdir(parents=True)
+        (d / "eval" / "frames_000000500" / "metrics.json").write_text(json.dumps(_metrics(dcr, 0.0)))
+    t = report.build(root, tmp_path / "out")["tables"]
+    dth = {r["d_th (m)"]: r["DCR"] for r in t["fig13_llm_setting_d_th"]}
+    assert dth == pytest.approx({5.0: 0.1, 15.0: 0.3, 25.0: 0.5})
+    prompt = {r["prompt"]: r["DCR"] for r in t["fig14_llm_setting_prompt"]}
+    assert prompt == pytest.approx({"none": 0.3, "no_data": 0.2, "no_compliance": 0.4})
+    eq = t["llm_equal_frames"]
+    assert eq[0]["method"] == "sac" and eq[0]["frames"] == "500" and eq[0]["n_seeds"] == 2
+    assert eq[0]["DCR"] == pytest.approx(0.3) and eq[0]["DCR_hi"] - 0.3 == pytest.approx(12.7062 * 0.1, abs=1e-3)
+    assert len(eq) == 7 and {r["setting"] for r in eq[1:]} >= {"llm_setting/d_th=15.0_prompt=none"}
+    assert (tmp_path / "out" / "fig14_llm_setting_prompt.png").stat().st_size > 1000
 
 
 def _episodes(run_dir: Path, frames: int, dcr: list[float], landed: list[bool]) -> None:
