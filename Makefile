@@ -153,18 +153,24 @@ experiments-sensitivity: $(STAMP)
 
 # The LLM methods: trained (the LLM acts while training), then evaluated like the others (their
 # actor alone: no LLM call); the LLM alone flies the training evaluation set under LLM_ALONE_ARGS.
-# LLM_ALONE=0 leaves the LLM alone out (make llm-alone flies it on its own budget).
+# LLM_ALONE=0 leaves the LLM alone out (make llm-alone flies it on its own budget);
+# LLM_SCENARIO_FP lists the fp variants the scenario sweeps evaluate (empty: none).
 LLM_ALONE_ARGS ?=
 LLM_ALONE ?= 1
-experiments-llm: $(STAMP)
+LLM_SCENARIO_FP ?= 0.3,0.4,0.5,1.0
+.PHONY: experiments-llm-train experiments-llm-sweeps experiments-llm-scenarios
+experiments-llm: experiments-llm-train experiments-llm-sweeps experiments-llm-scenarios
+experiments-llm-train: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
 	$(if $(filter 1,$(LLM_ALONE)),$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS))
+experiments-llm-sweeps: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS)
 	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS)
 	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS)
+experiments-llm-scenarios: $(STAMP)
 	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm || exit 1; \
-		$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=0.3,0.4,0.5,1.0 \
-		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1; done
+		$(if $(LLM_SCENARIO_FP),$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=$(LLM_SCENARIO_FP) \
+		'experiment.method=sac_llm_fp$${advisor.fp}' || exit 1;) done
 
 # The baselines at one equal frame budget: theile and wang beside sac, ppo and cpo (and random)
 # on the quick profile's world and evaluation set (results/eval_set_32.json), one seed, 102,400
@@ -223,15 +229,22 @@ quick: $(STAMP)
 	$(MAKE) experiments-sensitivity $(QUICK_SENS)
 	$(MAKE) experiments-results PROFILE=quick
 
-# The LLM figures at the quick size: one seed, 50,176 frames a run (49 batches: the frames of the
-# quick SAC runs' first evaluation, so each LLM run has plain SAC beside it at equal frames) and a
-# budget of 100 LLM rows a run (the actor acts once it is spent): a row of the early, random
-# flight takes about 3.5 s here with its re-asks, two runs at a time, so a run costs about 11 minutes. The LLM alone is left out (one call per row and step:
-# 32 x 1000 calls for one evaluation); `make llm-alone` flies it on its own budget.
+# The LLM methods at the quick size. SAC+LLM in the train sweep: the profile's 3 seeds and
+# 400k frames, like every learner there (so it joins Fig. 3, the learned test and Figs. 5-10 on
+# equal terms), with a budget of 500 LLM rows a run (the actor acts once it is spent; a row costs
+# about 1-1.5 s here, so the LLM adds about 10 minutes to a run). The sweeps of Figs. 13-14 and
+# the fp variants: seed 0, 50,176 frames (49 batches: the frames of the quick SAC runs' first
+# evaluation, so the report puts each beside plain SAC at equal frames) and 100 LLM rows, a few
+# minutes a run. The fp variants are not in the scenario sweeps (their actors trained for an
+# eighth of the others' frames). The LLM alone is left out (one call per row and step: 32 x 1000
+# calls for one evaluation); `make llm-alone` flies it on its own budget.
+QUICK_LLM_TRAIN_ARGS ?= trainer.compile_env=false advisor.max_calls=500
 QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
 quick-llm: $(STAMP)
-	$(MAKE) experiments-llm PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_ALONE=0
-	$(MAKE) experiments-report PROFILE=quick
+	$(MAKE) experiments-llm-train PROFILE=quick EXP_ARGS="$(QUICK_LLM_TRAIN_ARGS)" LLM_ALONE=0
+	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
+	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
+	$(MAKE) experiments-results PROFILE=quick
 
 paper: $(STAMP)
 	$(MAKE) experiments-train PROFILE=paper
