@@ -231,16 +231,24 @@ def _train_run(d: Path) -> Run:
         packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
         machine=machine_label(meta),
         extra={"wall_s": final.get("wall_s", final.get("llm/wall_s")),
-               "advisor_calls": int(final["llm/http_calls"]) if "llm/http_calls" in final else _advisor_calls(d)},
+               "advisor_calls": int(final["llm/http_calls"]) if "llm/http_calls" in final else _advisor_calls(d, final)},
     )
 
 
-def _advisor_calls(run_dir: Path) -> int | None:
-    """The advisor's calls over the run: the sum of every logged window's ``override/**/calls``."""
-    files = sorted((run_dir / "logs" / "scalars" / "override").rglob("calls.csv"))
+def _advisor_calls(run_dir: Path, final: dict[str, Any]) -> str | None:
+    """The advisor's calls over the run (the sum of every logged window's ``override/**/calls``),
+    and where the run logged them, the rows it answered and how many of those came from the
+    answer cache: ``"59 (100 rows, 43 cached)"``."""
+    scalars = run_dir / "logs" / "scalars"
+    files = sorted((scalars / "override").rglob("calls.csv"))
     if not files:
         return None
-    return int(sum(v for f in files for _, v in read_scalar(run_dir, str(f.relative_to(run_dir / "logs" / "scalars"))[:-4])))
+    calls = int(sum(v for f in files for _, v in read_scalar(run_dir, str(f.relative_to(scalars))[:-4])))
+    hits = sorted((scalars / "override").rglob("cache_hits.csv"))
+    if "override/advised" not in final or not hits:
+        return str(calls)
+    cached = int(sum(v for f in hits for _, v in read_scalar(run_dir, str(f.relative_to(scalars))[:-4])))
+    return f"{calls} ({int(final['override/advised'])} rows, {cached} cached)"
 
 
 def _eval_run(d: Path) -> Run:
@@ -343,7 +351,7 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
     calls = any(r.get("advisor_calls") for r in rows)
-    head = first + list(METRICS) + ["seeds", "frames", "episodes", "wall s (mean)"] + (["advisor calls"] if calls else []) + ["commits"]
+    head = first + list(METRICS) + ["seeds", "frames", "episodes", "wall s (mean)"] + (["advisor calls (rows answered, cached)"] if calls else []) + ["commits"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [str(r[k]) for k in first] + [fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) for m in METRICS]

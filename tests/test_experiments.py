@@ -221,6 +221,13 @@ def _llm_run(root: Path, d_th: float, prompt: str, dcr: float, frames: int = 500
     cfg = json.loads((d / "config.json").read_text())
     cfg["advisor"], cfg["llm"] = {"kind": "llm", "d_th": d_th}, {"prompt_ablation": prompt}
     (d / "config.json").write_text(json.dumps(cfg))
+    # 10 rows answered over two windows: 6 new calls (one an ask-again), 5 answers from the cache
+    final = json.loads((d / "final_metrics.json").read_text()) | {"override/advised": 10.0}
+    (d / "final_metrics.json").write_text(json.dumps(final))
+    adv = d / "logs" / "scalars" / "override" / "advisor"
+    adv.mkdir(parents=True)
+    (adv / "calls.csv").write_text("250,4\n500,2\n")
+    (adv / "cache_hits.csv").write_text("250,1\n500,4\n")
     return d
 
 
@@ -248,6 +255,7 @@ def test_llm_axes_and_the_runs_beside_plain_sac_at_equal_frames(tmp_path):
     assert eq[0]["method"] == "sac" and eq[0]["frames"] == "500" and eq[0]["n_seeds"] == 2
     assert eq[0]["DCR"] == pytest.approx(0.3) and eq[0]["DCR_hi"] - 0.3 == pytest.approx(12.7062 * 0.1, abs=1e-3)
     assert len(eq) == 7 and {r["setting"] for r in eq[1:]} >= {"llm_setting/d_th=15.0_prompt=none"}
+    assert eq[0]["advisor_calls"] == "" and {r["advisor_calls"] for r in eq[1:]} == {"6 (10 rows, 5 cached)"}
     assert (tmp_path / "out" / "fig14_llm_setting_prompt.png").stat().st_size > 1000
 
 
