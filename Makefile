@@ -163,10 +163,14 @@ experiments-llm: experiments-llm-train experiments-llm-sweeps experiments-llm-sc
 experiments-llm-train: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
 	$(if $(filter 1,$(LLM_ALONE)),$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS))
+# LLM_FP_ARGS, LLM_DTH_ARGS, LLM_PROMPT_ARGS: each sweep's own overrides (e.g. its seeds)
+LLM_FP_ARGS ?=
+LLM_DTH_ARGS ?=
+LLM_PROMPT_ARGS ?=
 experiments-llm-sweeps: $(STAMP)
-	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS)
-	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS)
-	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS)
+	$(TRAIN_SWEEP) +sweep=train_fp $(PROFILE_ARGS) $(LLM_FP_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_dth $(PROFILE_ARGS) $(LLM_DTH_ARGS)
+	$(TRAIN_SWEEP) +sweep=llm_prompt $(PROFILE_ARGS) $(LLM_PROMPT_ARGS)
 experiments-llm-scenarios: $(STAMP)
 	for s in $(SCENARIOS); do $(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm || exit 1; \
 		$(if $(LLM_SCENARIO_FP),$(EVAL_SWEEP) +sweep=scenario_$$s $(PROFILE_ARGS) +exp=sac_llm_fp advisor.fp=$(LLM_SCENARIO_FP) \
@@ -233,17 +237,19 @@ quick: $(STAMP)
 # 400k frames, like every learner there (so it joins Fig. 3, the learned test and Figs. 5-10 on
 # equal terms), with a budget of 500 LLM rows a run (the actor acts once it is spent; a row costs
 # about 1-1.5 s here, so the LLM adds about 10 minutes to a run). The sweeps of Figs. 13-14 and
-# the fp variants: seed 0, 50,176 frames (49 batches: the frames of the quick SAC runs' first
+# the fp variants: 50,176 frames (49 batches: the frames of the quick SAC runs' first
 # evaluation, so the report puts each beside plain SAC at equal frames) and 100 LLM rows, a few
-# minutes a run. The fp variants are not in the scenario sweeps (their actors trained for an
+# minutes a run; seeds 0-2 for d_th (Fig. 13, where the paper names a best value), seed 0 for
+# the rest. The fp variants are not in the scenario sweeps (their actors trained for an
 # eighth of the others' frames). The LLM alone is left out (one call per row and step: 32 x 1000
 # calls for one evaluation); `make llm-alone` flies it on its own budget.
 QUICK_LLM_TRAIN_ARGS ?= trainer.compile_env=false advisor.max_calls=500
-QUICK_LLM_ARGS ?= seed=0 trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
+QUICK_LLM_ARGS ?= trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
 quick-llm: $(STAMP)
 	$(MAKE) experiments-llm-train PROFILE=quick EXP_ARGS="$(QUICK_LLM_TRAIN_ARGS)" LLM_ALONE=0
 	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
-	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
+	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_FP_ARGS=seed=0 \
+		LLM_DTH_ARGS=seed=0,1,2 LLM_PROMPT_ARGS=seed=0
 	$(MAKE) experiments-results PROFILE=quick
 
 paper: $(STAMP)
