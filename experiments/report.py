@@ -240,14 +240,16 @@ def _advisor_calls(run_dir: Path, final: dict[str, Any]) -> str | None:
     and where the run logged them, the rows it answered and how many of those came from the
     answer cache: ``"59 (100 rows, 43 cached)"``."""
     scalars = run_dir / "logs" / "scalars"
-    files = sorted((scalars / "override").rglob("calls.csv"))
-    if not files:
+
+    def total(name: str) -> int | None:
+        files = sorted((scalars / "override").rglob(f"{name}.csv"))
+        return int(sum(v for f in files for _, v in read_scalar(run_dir, str(f.relative_to(scalars))[:-4]))) if files else None
+
+    calls, cached = total("calls"), total("cache_hits")
+    if calls is None:
         return None
-    calls = int(sum(v for f in files for _, v in read_scalar(run_dir, str(f.relative_to(scalars))[:-4])))
-    hits = sorted((scalars / "override").rglob("cache_hits.csv"))
-    if "override/advised" not in final or not hits:
+    if "override/advised" not in final or cached is None:
         return str(calls)
-    cached = int(sum(v for f in hits for _, v in read_scalar(run_dir, str(f.relative_to(scalars))[:-4])))
     return f"{calls} ({int(final['override/advised'])} rows, {cached} cached)"
 
 
