@@ -36,6 +36,7 @@ from typing import Any
 
 import yaml
 
+from uavlae.envs.metrics import aggregate, load_records
 from uavlae.files import atomic_write, dump_json
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
@@ -203,7 +204,9 @@ def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
     return out
 
 
-def _train_run(d: Path) -> Run:
+def _train_run(d: Path, partial: bool = False) -> Run:
+    """A finished train run; with ``partial``, also the LLM alone paused by its call budget (its
+    metrics cover the episodes it has scored)."""
     cfg = _read_json(d / "config.json")
     meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
     final_file = d / "final_metrics.json"
@@ -213,7 +216,7 @@ def _train_run(d: Path) -> Run:
     final = _read_json(final_file)
     tr = cfg.get("trainer", {})
     frames, episodes = int(final.get("frames", 0)), int(final.get("episodes", 0))
-    if final.get("eval/complete", 1) == 0:  # the LLM alone, paused by its call budget
+    if final.get("eval/complete", 1) == 0 and not partial:  # the LLM alone, paused by its call budget
         raise LookupError(f"unfinished: {int(final.get('eval/episodes_scored', 0))} of "
                           f"{int(final.get('eval/episodes_total', 0))} episodes scored (call budget; the same command continues)")
     if cfg.get("controller", "learner") == "learner":
@@ -705,6 +708,17 @@ def build(root: Path, out: Path) -> dict[str, Any]:
               "Each LLM run's final evaluation, and the evaluation of the train sweep's plain SAC runs at the same "
               "frame count (their learning curve's point): what the LLM's transitions changed at that budget.")
 
+    alone = llm_alone_rows(root, runs)
+    if alone:
+        table("llm_alone", alone, ["method", "scenarios"], "The LLM alone, and every method on the scenarios it has scored",
+              "The LLM alone (`+exp=llm`) decides every slot; a call budget per invocation pauses it between scenarios "
+              "and the same command continues it, so it may cover only the first scenarios of the evaluation set. "
+              "Beside it, every method of the train sweep on those scenarios (the same rows of its final evaluation; "
+              "mean [95% CI] over seeds). The LLM alone's env draws the OU turns of scenario i from eval_seed + i "
+              "(one scenario a chunk), the others' from one generator for the whole set: same layouts, GEs and OU "
+              "starts, other OU turns. Its cost: decisions asked, HTTP calls (the rest from the answer cache), "
+              "failed answers flown by the heuristic, and the wall clock over every invocation.")
+
     # the long run(s): one method, one seed, its curve and final evaluation
     long_runs = [r for r in runs if r.sweep == "long"]
     for r in long_runs:
@@ -793,6 +807,49 @@ def equal_frames_rows(runs: list[Run]) -> list[dict[str, Any]]:
         for sweep, point, method in sorted(here, key=lambda k: (method_key(k[2]), k[0], k[1])):
             rows.append(aggregate_rows(here[(sweep, point, method)], {"method": method, "setting": f"{sweep}/{point}"}))
     return rows
+
+
+def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
+    """The LLM alone of the train sweep (``+exp=llm``), finished or paused by its call budget, on
+    the scenarios it has scored, and beside it every other method of the train sweep on those same
+    scenarios: the rows of its final evaluation's ``episodes.csv`` (one episode per scenario, row i
+    = scenario i), the metrics of that subset per seed, then mean [95% CI] over seeds. The LLM
+    alone flies its chunks in order, so its scored episodes are the set's first
+    ``eval/episodes_scored`` scenarios."""
+    out = []
+    for cfg_file in sorted((root / "train").glob("*/seed*/config.json")):
+        d = cfg_file.parent
+        if _read_json(cfg_file).get("controller") != "llm" or not (d / "final_metrics.json").is_file():
+            continue
+        try:
+            alone = _train_run(d, partial=True)
+        except (LookupError, ValueError):
+            continue  # collect() lists it as skipped
+        final = _read_json(d / "final_metrics.json")
+        k, n = int(final.get("eval/episodes_scored", 0)), int(final.get("eval/episodes_total", 0))
+        if k == 0:
+            continue
+        scen = f"0-{k - 1} ({k} of {n})"
+        row = aggregate_rows([alone], {"method": alone.method, "scenarios": scen})
+        row["episodes"] = str(k)
+        row["advisor_calls"] = (f"{int(final.get('llm/calls', 0))} decisions, {int(final.get('llm/http_calls', 0))} HTTP, "
+                                f"{int(final.get('llm/fallbacks', 0))} fallbacks")
+        out.append(row)
+        others: dict[str, list[Run]] = defaultdict(list)
+        for r in runs:
+            if r.kind != "train" or r.sweep != "train" or r.path == d:
+                continue
+            f = r.path / "eval" / f"frames_{r.frames:09d}" / "episodes.csv"  # uavlae.train's final evaluation
+            if not f.is_file():
+                continue
+            rec = load_records(f)
+            pick = rec["row"] < k
+            if int(pick.sum()) != k:
+                continue  # not one episode per scenario
+            others[r.method].append(replace(r, metrics=_metrics_of(aggregate({c: v[pick] for c, v in rec.items()}))))
+        for method in sorted(others, key=method_key):
+            out.append(aggregate_rows(others[method], {"method": method, "scenarios": scen}))
+    return out
 
 
 def _fig_long(r: Run, style: Style, out: Path, note: str) -> list[str]:

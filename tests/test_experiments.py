@@ -286,6 +286,52 @@ def test_learned_with_one_seed_compares_the_final_evaluations_episodes(tmp_path)
     assert rows["ddpg"]["learned"].startswith("undetermined")
 
 
+def _full_episodes(run_dir: Path, frames: int, **cols: list) -> None:
+    """An ``episodes.csv`` with every record column: the given ones, zeros and False elsewhere."""
+    from uavlae.envs.metrics import RECORD_COLUMNS, save_records
+
+    n = len(next(iter(cols.values())))
+    rows = [{c: cols[c][i] if c in cols else (i if c == "row" else 0) for c in RECORD_COLUMNS} for i in range(n)]
+    save_records(rows, run_dir / "eval" / f"frames_{frames:09d}" / "episodes.csv")
+
+
+def test_llm_alone_paused_beside_every_method_on_its_scored_scenarios(tmp_path):
+    root = tmp_path / "runs"
+    # the LLM alone, paused by its call budget after 2 of the 4 scenarios
+    alone = _train_dir(root, "llm", 0, _metrics(0.1, 0.0, cr=0.0, ecr=0.3), controller="llm", frames=0)
+    (alone / "final_metrics.json").write_text(json.dumps({
+        "frames": 0, **{f"eval/{k}": v for k, v in _metrics(0.1, 0.0, cr=0.0, ecr=0.3).items()},
+        "eval/complete": 0, "eval/episodes_scored": 2, "eval/episodes_total": 4,
+        "llm/calls": 2000, "llm/http_calls": 1500, "llm/fallbacks": 3, "llm/wall_s": 3000.0}))
+    # the heuristic, two seeds; on scenarios 0-1: DCR 15/20 = 0.75 and 20/20 = 1.0 (mean 0.875,
+    # interval 12.7062 * 0.125 = 1.588), SLR 0.5 and 1.0, ECR 400/2000 = 0.2 both
+    total, e_total = [10.0] * 4, [1000.0] * 4
+    for s, (data, landed) in enumerate((([10, 5, 0, 0], [True, False, True, True]), ([10, 10, 0, 0], [True, True, False, False]))):
+        d = _train_dir(root, "heuristic", s, _metrics(0.5, 0.5), controller="heuristic", frames=0)
+        _full_episodes(d, 0, data_collected=data, data_total=total, landed=landed, energy_used=[100, 300, 999, 999],
+                       energy_total=e_total)
+    # sac, one seed: 6/20 = 0.3 collected, one of two collided
+    d = _train_dir(root, "sac", 0, _metrics(0.9, 0.9))
+    _full_episodes(d, 1000, data_collected=[2, 4, 9, 9], data_total=total, collided=[False, True, False, False],
+                   energy_used=[0] * 4, energy_total=e_total)
+    # ddpg evaluated on one scenario only: not one episode per scenario, left out
+    _full_episodes(_train_dir(root, "ddpg", 0, _metrics(0.9, 0.9)), 1000, data_collected=[1], data_total=[10.0],
+                   energy_used=[0], energy_total=[1000.0])
+    res = report.build(root, tmp_path / "out")
+    rows = {r["method"]: r for r in res["tables"]["llm_alone"]}
+    assert list(rows) == ["llm", "sac", "heuristic"]  # the LLM alone, then the others in the report's order
+    assert rows["llm"]["scenarios"] == "0-1 (2 of 4)" and rows["llm"]["episodes"] == "2"
+    assert rows["llm"]["DCR"] == pytest.approx(0.1) and rows["llm"]["ECR"] == pytest.approx(0.3)
+    assert rows["llm"]["advisor_calls"] == "2000 decisions, 1500 HTTP, 3 fallbacks" and rows["llm"]["wall_s"] == 3000.0
+    h = rows["heuristic"]
+    assert (h["n_seeds"], h["DCR"], h["SLR"], h["ECR"]) == (2, pytest.approx(0.875), pytest.approx(0.75), pytest.approx(0.2))
+    assert h["DCR_hi"] - 0.875 == pytest.approx(12.7062 * 0.125, abs=1e-3)
+    assert (rows["sac"]["DCR"], rows["sac"]["CR"], rows["sac"]["n_seeds"]) == (pytest.approx(0.3), pytest.approx(0.5), 1)
+    # the paused run is still no finished run: out of the train table, listed as skipped
+    assert {r["method"] for r in res["tables"]["train_final"]} == {"heuristic", "sac", "ddpg"}
+    assert any("llm" in p and "2 of 4 episodes scored" in why for p, why in res["skipped"])
+
+
 def test_report_on_synthetic_runs(tmp_path):
     import matplotlib
 
