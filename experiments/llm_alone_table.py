@@ -31,13 +31,14 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], n: int) -> dict[str, float]
 
     from uavlae.envs import make_env_config
     from uavlae.envs.scenario import load_scenarios
+    from uavlae.evaluate import eval_set_path
     from uavlae.factories import make_heuristic
     from uavlae.llm_alone import LLMAloneEvaluation
 
     c = OmegaConf.create(cfg)
     env_cfg = make_env_config(c.env)
-    scenarios = load_scenarios(run_dir / "eval_set.json")[:n]
     tr = c.trainer
+    scenarios = load_scenarios(eval_set_path(run_dir, tr.get("eval_set")))[:n]  # a sweep's shared set, else the run's own
     with tempfile.TemporaryDirectory() as tmp:
         ev = LLMAloneEvaluation(env_cfg, scenarios, make_heuristic(c, env_cfg), tmp, seed=int(tr.eval_seed),
                                 chunk=tr.eval_chunk, max_steps=tr.eval_max_steps, n_plots=0)
@@ -92,7 +93,10 @@ def build(run_dir: Path, command: str | None) -> dict[str, Any]:
         "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, n).items()
                                       if k in (*PAPER_METRICS, "mean_length")} if n else None),
         "cost": la["cost"],
-        "episodes": [{k: r.get(k) for k in EPISODE_COLUMNS} for r in episodes],
+        # chunks are flown in order and each ends before the next starts, so episode i belongs to
+        # chunk i // chunk; its row within the chunk gives the scenario
+        "episodes": [{"scenario": (i // int(la["chunk"])) * int(la["chunk"]) + int(r["row"]),
+                      **{k: r.get(k) for k in EPISODE_COLUMNS}} for i, r in enumerate(episodes)],
         "machine": describe_machine(),
     }
 
@@ -149,7 +153,7 @@ def markdown(res: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in res["episodes"]:
-        lines.append(f"| {e['row']} | {e['length']} | {e['llm_calls']} | {e['llm_fallbacks']} | {e['collided']} | "
+        lines.append(f"| {e['scenario']} | {e['length']} | {e['llm_calls']} | {e['llm_fallbacks']} | {e['collided']} | "
                      f"{e['landed']} | {e['boundary_exit']} | {float(e['data_collected']):.2f} of "
                      f"{float(e['data_total']):.2f} | {float(e['energy_used']):.0f} |")
     return "\n".join(lines) + "\n"
