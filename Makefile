@@ -153,7 +153,7 @@ experiments-sensitivity: $(STAMP)
 
 # The LLM methods: trained (the LLM acts while training), then evaluated like the others (their
 # actor alone: no LLM call); the LLM alone flies the training evaluation set under LLM_ALONE_ARGS.
-# LLM_ALONE=0 leaves the LLM alone out (make llm-alone flies it on its own budget);
+# LLM_ALONE=0 leaves the LLM alone out (make experiments-llm-alone runs it alone; LLM_ALONE_ARGS: its call budget);
 # LLM_SCENARIO_FP lists the fp variants the scenario sweeps evaluate (empty: none).
 LLM_ALONE_ARGS ?=
 LLM_ALONE ?= 1
@@ -162,7 +162,10 @@ LLM_SCENARIO_FP ?= 0.3,0.4,0.5,1.0
 experiments-llm: experiments-llm-train experiments-llm-sweeps experiments-llm-scenarios
 experiments-llm-train: $(STAMP)
 	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=sac_llm
-	$(if $(filter 1,$(LLM_ALONE)),$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS))
+	$(if $(filter 1,$(LLM_ALONE)),$(MAKE) experiments-llm-alone)
+.PHONY: experiments-llm-alone
+experiments-llm-alone: $(STAMP)
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS)
 # LLM_FP_ARGS, LLM_DTH_ARGS, LLM_PROMPT_ARGS: each sweep's own overrides (e.g. its seeds)
 LLM_FP_ARGS ?=
 LLM_DTH_ARGS ?=
@@ -239,18 +242,26 @@ quick: $(STAMP)
 # about 1-1.5 s here, so the LLM adds about 10 minutes to a run). The sweeps of Figs. 13-14 and
 # the fp variants: 50,176 frames (49 batches: the frames of the quick SAC runs' first
 # evaluation, so the report puts each beside plain SAC at equal frames) and 100 LLM rows, a few
-# minutes a run; seeds 0-2 for d_th (Fig. 13, where the paper names a best value), seed 0 for
-# the rest. The fp variants are not in the scenario sweeps (their actors trained for an
-# eighth of the others' frames). The LLM alone is left out (one call per row and step: 32 x 1000
-# calls for one evaluation); `make llm-alone` flies it on its own budget.
+# minutes a run, the profile's 3 seeds. The fp variants are not in the scenario sweeps (their
+# actors trained for an eighth of the others' frames).
 QUICK_LLM_TRAIN_ARGS ?= trainer.compile_env=false advisor.max_calls=500
 QUICK_LLM_ARGS ?= trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
+# The LLM alone at the quick size: seed 0 (it does not depend on the seed), one scenario a chunk
+# (chunk k's env draws its OU turns from eval_seed + k), and QUICK_LLM_ALONE_BUDGET decisions an
+# invocation: an episode that does not land is 1000 decisions, about 26 minutes here, so the
+# 32-scenario set is about 14 h. Each `make quick-llm` scores the next scenarios; the report
+# puts the scored ones beside every method's episodes on the same scenarios (llm_alone table),
+# and results/quick/llm_alone.md gives each episode, the cost, and the heuristic flown with the
+# same chunks and seeds.
+QUICK_LLM_ALONE_BUDGET ?= 4000
+QUICK_LLM_ALONE_ARGS ?= seed=0 trainer.eval_chunk=1 trainer.llm_call_budget=$(QUICK_LLM_ALONE_BUDGET)
 quick-llm: $(STAMP)
 	$(MAKE) experiments-llm-train PROFILE=quick EXP_ARGS="$(QUICK_LLM_TRAIN_ARGS)" LLM_ALONE=0
+	$(MAKE) experiments-llm-alone PROFILE=quick LLM_ALONE_ARGS="$(QUICK_LLM_ALONE_ARGS)"
 	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
-	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)" LLM_FP_ARGS=seed=0 \
-		LLM_DTH_ARGS=seed=0,1,2 LLM_PROMPT_ARGS=seed=0
+	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
 	$(MAKE) experiments-results PROFILE=quick
+	$(BIN)/python -m experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone --command "make quick-llm"
 
 paper: $(STAMP)
 	$(MAKE) experiments-train PROFILE=paper
