@@ -251,7 +251,7 @@ QUICK_LLM_ARGS ?= trainer.total_frames=50000 trainer.compile_env=false advisor.m
 # invocation: an episode that does not land is 1000 decisions, about 26 minutes here, so the
 # 32-scenario set is about 14 h. Each `make quick-llm` scores the next scenarios; the report
 # puts the scored ones beside every method's episodes on the same scenarios (llm_alone table),
-# and results/quick/llm_alone.md gives each episode, the cost, and the heuristic flown with the
+# and results/quick/llm_alone_episodes.md gives each episode, the cost, and the heuristic flown with the
 # same chunks and seeds.
 QUICK_LLM_ALONE_BUDGET ?= 4000
 QUICK_LLM_ALONE_ARGS ?= seed=0 trainer.eval_chunk=1 trainer.llm_call_budget=$(QUICK_LLM_ALONE_BUDGET)
@@ -261,7 +261,7 @@ quick-llm: $(STAMP)
 	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
 	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
 	$(MAKE) experiments-results PROFILE=quick
-	$(BIN)/python -m experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone --command "make quick-llm"
+	$(BIN)/python -m experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone_episodes --command "make quick-llm"
 
 paper: $(STAMP)
 	$(MAKE) experiments-train PROFILE=paper

@@ -93,10 +93,7 @@ def build(run_dir: Path, command: str | None) -> dict[str, Any]:
         "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, n).items()
                                       if k in (*PAPER_METRICS, "mean_length")} if n else None),
         "cost": la["cost"],
-        # chunks are flown in order and each ends before the next starts, so episode i belongs to
-        # chunk i // chunk; its row within the chunk gives the scenario
-        "episodes": [{"scenario": (i // int(la["chunk"])) * int(la["chunk"]) + int(r["row"]),
-                      **{k: r.get(k) for k in EPISODE_COLUMNS}} for i, r in enumerate(episodes)],
+        "episodes": [{"scenario": int(r["row"]), **{k: r.get(k) for k in EPISODE_COLUMNS}} for r in episodes],
         "machine": describe_machine(),
     }
 
