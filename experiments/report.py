@@ -204,6 +204,9 @@ def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
     return out
 
 
+_PROGRESS_KEYS = ("eval/episodes_scored", "eval/episodes_total", "llm/calls", "llm/http_calls", "llm/fallbacks")
+
+
 def _train_run(d: Path, partial: bool = False) -> Run:
     """A finished train run; with ``partial``, also the LLM alone paused by its call budget (its
     metrics cover the episodes it has scored)."""
@@ -234,6 +237,8 @@ def _train_run(d: Path, partial: bool = False) -> Run:
         packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
         machine=machine_label(meta),
         extra={"wall_s": final.get("wall_s", final.get("llm/wall_s")),
+               # the LLM alone's progress and advisor counts, for llm_alone_rows
+               **{key.split("/")[1]: int(final[key]) for key in _PROGRESS_KEYS if key in final},
                "advisor_calls": int(final["llm/http_calls"]) if "llm/http_calls" in final else _advisor_calls(d, final)},
     )
 
@@ -366,10 +371,15 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
     return lines
 
 
+def train_eval_dir(run_dir: Path, frames: int) -> Path:
+    """Where uavlae.train writes its evaluation at ``frames`` (its final one at the run's frames)."""
+    return run_dir / "eval" / f"frames_{frames:09d}"
+
+
 def final_episodes(run: Run) -> dict[str, list[float]] | None:
     """The per-episode DCR and SLR of a train run's final evaluation (``eval/frames_<frames>/episodes.csv``:
     data collected over data held, landed), or None when that file is missing."""
-    f = run.path / "eval" / f"frames_{run.frames:09d}" / "episodes.csv"  # uavlae.train's evaluation folder
+    f = train_eval_dir(run.path, run.frames) / "episodes.csv"
     if not f.is_file():
         return None
     rows = list(csv.DictReader(f.open(newline="")))
@@ -796,7 +806,7 @@ def equal_frames_rows(runs: list[Run]) -> list[dict[str, Any]]:
     for frames in sorted({r.frames for r in llm}):
         at = []
         for r in sac:
-            f = r.path / "eval" / f"frames_{frames:09d}" / "metrics.json"
+            f = train_eval_dir(r.path, frames) / "metrics.json"
             if f.is_file():
                 at.append(replace(r, metrics=_metrics_of(_read_json(f)), frames=frames, episodes=0,
                                               extra={}))
@@ -825,21 +835,20 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
             alone = _train_run(d, partial=True)
         except (LookupError, ValueError):
             continue  # collect() lists it as skipped
-        final = _read_json(d / "final_metrics.json")
-        k, n = int(final.get("eval/episodes_scored", 0)), int(final.get("eval/episodes_total", 0))
+        k, n = alone.extra.get("episodes_scored", 0), alone.extra.get("episodes_total", 0)
         if k == 0:
             continue
         scen = f"0-{k - 1} ({k} of {n})"
         row = aggregate_rows([alone], {"method": alone.method, "scenarios": scen})
         row["episodes"] = str(k)
-        row["advisor_calls"] = (f"{int(final.get('llm/calls', 0))} decisions, {int(final.get('llm/http_calls', 0))} HTTP, "
-                                f"{int(final.get('llm/fallbacks', 0))} fallbacks")
+        row["advisor_calls"] = (f"{alone.extra.get('calls', 0)} decisions, {alone.extra.get('http_calls', 0)} HTTP, "
+                                f"{alone.extra.get('fallbacks', 0)} fallbacks")
         out.append(row)
         others: dict[str, list[Run]] = defaultdict(list)
         for r in runs:
             if r.kind != "train" or r.sweep != "train" or r.path == d:
                 continue
-            f = r.path / "eval" / f"frames_{r.frames:09d}" / "episodes.csv"  # uavlae.train's final evaluation
+            f = train_eval_dir(r.path, r.frames) / "episodes.csv"
             if not f.is_file():
                 continue
             rec = load_records(f)
