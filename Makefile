@@ -228,11 +228,13 @@ QUICK_SENS_GRIDS := \
 	SENS_GRID_batch_size=trainer.batch_size=64,256,512 SENS_GRID_r1=env.reward.sigma.0=4.0,8.0,16.0 \
 	SENS_GRID_r2=env.reward.sigma.1=0.2,0.4,0.8 SENS_GRID_r5=env.reward.sigma.4=0.3,0.6,1.2 SENS_GRID_r8=env.reward.sigma.7=0.5,1.0,2.0
 QUICK_SENS := PROFILE=quick_sensitivity EXP_ROOT=runs/quick SENS_EXP=sac SENS_SEEDS=0,1 $(QUICK_SENS_GRIDS)
-# ... and again with PPO at the quick profile's whole 400k frames, where it lands (SLR 0.89 in the
-# train sweep, about 270 s a run here): the sensitivity of a policy that has learned, beside
-# SAC's early in learning (SAC lands only near 400k frames, at about 30 min a run, 13 h for these
-# 26 runs). The batch-size axis is left out: it sweeps the replay sample (trainer.batch_size),
-# which PPO does not have (its minibatch is algo.minibatch_size).
+# ... and, with `make quick-sens-landed`, again with PPO at the quick profile's whole 400k frames,
+# where it lands (SLR 0.89 in the train sweep): the sensitivity of a policy that has learned,
+# beside SAC's early in learning (SAC lands only near 400k frames, at about 30 min a run, 13 h
+# for these 26 runs). About 1.8 core-hours (benchmarks/quick_profile_fps.json), so it is not a
+# step of `make quick`, which keeps within 3 h on two cores. The batch-size axis is left out: it
+# sweeps the replay sample (trainer.batch_size), which PPO does not have (its minibatch is
+# algo.minibatch_size).
 QUICK_SENS_LANDED := PROFILE=quick EXP_ROOT=runs/quick SENS_EXP=ppo SENS_SEEDS=0,1 \
 	SENSITIVITY="actor_lr critic_lr r1 r2 r5 r8" $(QUICK_SENS_GRIDS)
 # QUICK_METHODS=sac,ppo,... trains and evaluates only those methods (default: every method of the sweeps)
@@ -242,6 +244,10 @@ quick: $(STAMP)
 	$(MAKE) experiments-train PROFILE=quick EXP_ARGS="$(QUICK_EXP)"
 	$(MAKE) experiments-scenarios PROFILE=quick EXP_ARGS="$(QUICK_EXP)"
 	$(MAKE) experiments-sensitivity $(QUICK_SENS)
+	$(MAKE) experiments-results PROFILE=quick
+
+.PHONY: quick-sens-landed
+quick-sens-landed: $(STAMP)
 	$(MAKE) experiments-sensitivity $(QUICK_SENS_LANDED)
 	$(MAKE) experiments-results PROFILE=quick
 
