@@ -117,6 +117,7 @@ clean:
 # then one report (experiments/README.md). Every sweep reuses what its folder holds: a killed
 # `make quick` run again resumes its unfinished runs and skips the finished ones.
 #   make quick                     # this 2-core machine, the non-LLM figures (about 3 h; see the README there)
+#   make quick-sens-landed         # Figs. 11-12 again with PPO where it lands (about 1 h more)
 #   make quick-llm                 # the LLM figures at the quick size (hours per run: the local LLM's speed)
 #   make paper LAUNCHER=slurm      # the paper's size, on a cluster
 #   make experiments-report PROFILE=quick
