@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.files import atomic_write, dump_json
+from uavlae.files import atomic_write, dump_json, train_eval_dir
 from uavlae.machine import describe_machine
 
 EPISODE_COLUMNS = ("row", "length", "llm_calls", "llm_fallbacks", "collided", "landed", "boundary_exit",
@@ -49,7 +49,7 @@ def in_flight(run_dir: Path) -> dict[str, Any] | None:
     """The episode the budget paused, so far (not scored): its slot, data and energy, events."""
     import torch
 
-    file = run_dir / "eval" / "frames_000000000" / "progress.pt"
+    file = train_eval_dir(run_dir, 0) / "progress.pt"
     if not file.is_file():
         return None
     state = torch.load(file, map_location="cpu", weights_only=False)
@@ -71,7 +71,7 @@ def build(run_dir: Path, command: str | None) -> dict[str, Any]:
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text()) if (run_dir / "meta.json").is_file() else {}
     la = summary["llm_alone"]
-    episodes_file = run_dir / "eval" / "frames_000000000" / "episodes.csv"
+    episodes_file = train_eval_dir(run_dir, 0) / "episodes.csv"
     episodes = list(csv.DictReader(episodes_file.open())) if episodes_file.is_file() else []
     n = int(la["episodes_scored"])
     return {

@@ -37,7 +37,7 @@ from typing import Any
 import yaml
 
 from uavlae.envs.metrics import aggregate, load_records
-from uavlae.files import atomic_write, dump_json
+from uavlae.files import atomic_write, dump_json, train_eval_dir
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 # Higher is better for these; lower for the others (the radar chart flips those).
@@ -369,11 +369,6 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
         cells += ([r.get("advisor_calls", "")] if calls else []) + [r["commits"]]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
-
-
-def train_eval_dir(run_dir: Path, frames: int) -> Path:
-    """Where uavlae.train writes its evaluation at ``frames`` (its final one at the run's frames)."""
-    return run_dir / "eval" / f"frames_{frames:09d}"
 
 
 def final_episodes(run: Run) -> dict[str, list[float]] | None:

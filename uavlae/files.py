@@ -1,5 +1,6 @@
 """Files written atomically: a temporary file beside the target, flushed to disk, then renamed
-over it, so that a reader (or a run interrupted half-way) never sees a half-written file."""
+over it, so that a reader (or a run interrupted half-way) never sees a half-written file. Also
+where a training run puts its evaluations, for the writer and its readers alike."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_write", "dump_json"]
+__all__ = ["atomic_write", "dump_json", "train_eval_dir"]
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any], *, previous: str | os.PathLike[str] | None = None) -> Path:
@@ -40,6 +41,12 @@ def dump_json(path: str | os.PathLike[str], obj: Any, *, indent: int | None = 1,
     """``obj`` as JSON in ``path``, atomically (objects JSON does not know are written as ``str``)."""
     text = json.dumps(obj, indent=indent, allow_nan=allow_nan, default=str)
     return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def train_eval_dir(run_dir: str | os.PathLike[str], frames: int) -> Path:
+    """The folder of uavlae.train's evaluation at ``frames`` (its final one at the run's frames;
+    the controllers' and the LLM alone's at 0)."""
+    return Path(run_dir) / "eval" / f"frames_{frames:09d}"
 
 
 def _fsync_dir(d: Path) -> None:

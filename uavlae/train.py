@@ -60,7 +60,7 @@ from uavlae.factories import (
     trim_csv_scalars,
     validate_config,
 )
-from uavlae.files import atomic_write
+from uavlae.files import atomic_write, train_eval_dir
 
 log = logging.getLogger(__name__)
 
@@ -143,10 +143,6 @@ def _prepare(cfg: DictConfig) -> tuple[DictConfig, dict[str, Any] | None]:
     OmegaConf.set_struct(cfg, True)
     validate_config(cfg)
     return cfg, ckpt
-
-
-def _eval_out(run_dir: Path, frames: int) -> Path:
-    return run_dir / "eval" / f"frames_{frames:09d}"
 
 
 def _prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
@@ -296,7 +292,7 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 def _pictures(run_dir: Path, frames: int) -> list[str]:
     out = []
-    for d in (_eval_out(run_dir, frames), run_dir / "eval" / "baseline_heuristic", run_dir / "eval" / "baseline_random"):
+    for d in (train_eval_dir(run_dir, frames), run_dir / "eval" / "baseline_heuristic", run_dir / "eval" / "baseline_random"):
         if any(d.glob("trajectory_*.png")):
             out.append(str(d / "trajectory_*.png"))
     return out
@@ -375,7 +371,7 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
     controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
     t0 = time.perf_counter()
     try:
-        agg = evaluator.run(controller, _eval_out(run_dir, 0), title=str(cfg.name))
+        agg = evaluator.run(controller, train_eval_dir(run_dir, 0), title=str(cfg.name))
         totals = controller.run_totals() if hasattr(controller, "run_totals") else None
         stats = controller.snapshot() if hasattr(controller, "snapshot") else {}
     finally:
@@ -384,7 +380,7 @@ def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, lo
             close()
     metrics = {**_prefixed("eval", agg), **_prefixed("override", stats), "time/eval_s": time.perf_counter() - t0}
     logger.log_metrics(metrics, step=0)
-    logger.log_images(_trajectory_images(_eval_out(run_dir, 0)), step=0)
+    logger.log_images(_trajectory_images(train_eval_dir(run_dir, 0)), step=0)
     final = {"frames": 0, **metrics}
     dump_json(run_dir / "final_metrics.json", final)
     write_summary(run_dir, {
@@ -406,7 +402,7 @@ def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, log
     tr = make_trainer_config(cfg.trainer)
     fingerprint = _comparable(_resolved(cfg))
     fingerprint.pop("run_dir", None)  # a moved run folder still continues
-    out = _eval_out(run_dir, 0)
+    out = train_eval_dir(run_dir, 0)
     controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
     try:
         ev = LLMAloneEvaluation(
@@ -498,7 +494,7 @@ def _train(
         return save_checkpoint(state, run_dir, keep=tr.keep_checkpoints)
 
     def evaluate(frames: int) -> dict[str, float]:
-        out = _eval_out(run_dir, frames)
+        out = train_eval_dir(run_dir, frames)
         agg = evaluator.run(deterministic_actor(learner), out, title=f"{cfg.name} @ {frames} frames")
         logger.log_metrics({**_prefixed("eval", agg), "eval/episodes_trained": counters["episodes"]}, step=frames)
         logger.log_images(_trajectory_images(out), step=frames)
