@@ -66,13 +66,16 @@ bench-env-ab: $(STAMP)
 bench-llm: $(STAMP)
 	$(BIN)/python benchmarks/llm_throughput.py
 
-# Where an advice call's time goes (the server's own timings), what each server setting buys,
-# and answered calls/s at 1, 4, 8, 16 in flight -> benchmarks/llm_call_breakdown.json
+# Where an advice call's time goes (the server's own timings), what each server setting buys
+# (and whether it changes the answers: default_again is the default on a second server), and
+# answered calls/s at 1, 4, 8, 16 in flight -> benchmarks/llm_call_breakdown.json
 .PHONY: bench-llm-breakdown
 bench-llm-breakdown: $(STAMP)
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --settings default previous_default
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --rollout-calls 8 --fresh-calls 3 \
 		--settings default one_slot_no_affinity threads_2 ubatch_128 flash_attn_on
+	$(BIN)/python benchmarks/llm_call_breakdown.py --part settings --rollout-calls 24 --fresh-calls 4 \
+		--settings default default_again threads_2
 	$(BIN)/python benchmarks/llm_call_breakdown.py --part concurrency
 
 # What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics

@@ -62,6 +62,9 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "one_slot_no_affinity": {"slot_affinity": False, "server.n_parallel": 1},
     "json_schema": {"response_format": "json_schema"},
     "threads_2": {"server.n_threads": 2},
+    # the default again on its own server: how often the same settings give the same answer,
+    # the reference for threads_2's share
+    "default_again": {"server.n_threads": 1},
     "ubatch_128": {"server.n_ubatch": 128},
     "batch_ubatch_64": {"server.n_batch": 64, "server.n_ubatch": 64},
     "flash_attn_on": {"server.flash_attn": "on"},
@@ -125,12 +128,16 @@ def advised_call(adv: LLMAdvisor, state: Any, seen: list) -> dict[str, float]:
             "predicted_n": t["predicted_n"], "predicted_ms": t["predicted_ms"],
             "http_and_server_rest_ms": res.latency_s * 1e3 - t["prompt_ms"] - t["predicted_ms"],
             "client_ms": (wall - res.latency_s) * 1e3,  # prompt text, extractor, the event-loop hop
-            "attempts": len(seen) - n0, "valid": float(r.ok)}
+            "attempts": len(seen) - n0, "valid": float(r.ok),
+            # the answer itself, so settings that should not change it (threads) can be checked
+            "answer": [r.vx, r.vy, r.confidence, r.reasoning] if r.ok else None}
 
 
 def summarise(calls: list[dict[str, float]]) -> dict[str, float]:
     out: dict[str, float] = {"calls": len(calls)}
     for k in calls[0]:
+        if k == "answer":
+            continue
         out[f"mean_{k}"] = sum(c[k] for c in calls) / len(calls)
     wall = [c["wall_ms"] / 1e3 for c in calls]  # per state, ask-again attempts included
     out["p50_s"], out["p95_s"] = _quantile(wall, 0.5), _quantile(wall, 0.95)
@@ -140,6 +147,16 @@ def summarise(calls: list[dict[str, float]]) -> dict[str, float]:
     out["decode_tok_per_s"] = dn / (sum(c["predicted_ms"] for c in calls) / 1e3) if dn else math.nan
     out["reused_prefix_share"] = sum(c["cache_n"] for c in calls) / max(1, sum(c["cache_n"] + c["prompt_n"] for c in calls))
     return out
+
+
+def answer_agreement(calls: list[list[dict]], default_calls: list[list[dict]]) -> dict[str, float]:
+    """The share of states answered exactly as the default answered them (velocity, confidence
+    and reasoning), and with the same velocity: a setting that should not change what the model
+    says (its thread count) is checked against ``default_again``, the default on a second server."""
+    pairs = [(a["answer"], b["answer"]) for cs, ds in zip(calls, default_calls) for a, b in zip(cs, ds)]
+    same_v = [a is not None and b is not None and a[:2] == b[:2] for a, b in pairs]
+    return {"same_answer_as_default": sum(a == b for a, b in pairs) / len(pairs),
+            "same_velocity_as_default": sum(same_v) / len(pairs)}
 
 
 def free_decode_call(adv: LLMAdvisor, state: Any, n_tokens: int) -> dict[str, float]:
@@ -201,6 +218,12 @@ def part_settings(args, limits, base_cfg, streams, fresh) -> dict[str, Any]:
             if name != "default":
                 res[name]["p50_vs_default"] = {k: res[name][k]["summary"]["p50_s"] / d[k]["summary"]["p50_s"]
                                                for k in streams}
+                res[name].update(answer_agreement([res[name][k]["calls"] for k in streams],
+                                                  [d[k]["calls"] for k in streams]))
+                print(f"{name:22s} p50 vs default: " + ", ".join(f"{k} x{v:.2f}" for k, v in
+                      res[name]["p50_vs_default"].items())
+                      + f"; same answer as default in {res[name]['same_answer_as_default']:.0%} of calls, "
+                      f"same velocity in {res[name]['same_velocity_as_default']:.0%}", flush=True)
     if "default" in res and "previous_default" in res:
         res["speedup_p50_rollout"] = res["previous_default"]["p50_vs_default"]["rollout"]
         res["speedup_p50_fresh"] = res["previous_default"]["p50_vs_default"]["fresh"]
