@@ -161,6 +161,11 @@ experiments-sensitivity: $(STAMP)
 # LLM_SCENARIO_FP lists the fp variants the scenario sweeps evaluate (empty: none).
 LLM_ALONE_ARGS ?=
 LLM_ALONE ?= 1
+# LLM_ALONE_SHARDS=N: N jobs of the sweep fly the LLM alone side by side into its one run folder,
+# each its own scenarios and LLM server (uavlae/llm_alone.py): both cores here, an array on a cluster
+LLM_ALONE_SHARDS ?= 1
+LLM_ALONE_SHARD_ARGS = $(if $(filter-out 1,$(LLM_ALONE_SHARDS)),trainer.eval_shards=$(LLM_ALONE_SHARDS) \
+	trainer.eval_shard=$(shell seq -s, 0 $$(($(LLM_ALONE_SHARDS) - 1))))
 LLM_SCENARIO_FP ?= 0.3,0.4,0.5,1.0
 .PHONY: experiments-llm-train experiments-llm-sweeps experiments-llm-scenarios
 experiments-llm: experiments-llm-train experiments-llm-sweeps experiments-llm-scenarios
@@ -169,7 +174,7 @@ experiments-llm-train: $(STAMP)
 	$(if $(filter 1,$(LLM_ALONE)),$(MAKE) experiments-llm-alone)
 .PHONY: experiments-llm-alone
 experiments-llm-alone: $(STAMP)
-	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_ARGS)
+	$(TRAIN_SWEEP) +sweep=train_llm $(PROFILE_ARGS) +exp=llm $(LLM_ALONE_SHARD_ARGS) $(LLM_ALONE_ARGS)
 # LLM_FP_ARGS, LLM_DTH_ARGS, LLM_PROMPT_ARGS: each sweep's own overrides (e.g. its seeds)
 LLM_FP_ARGS ?=
 LLM_DTH_ARGS ?=
@@ -266,9 +271,10 @@ quick-sens-landed: $(STAMP)
 QUICK_LLM_TRAIN_ARGS ?= trainer.compile_env=false advisor.max_calls=500
 QUICK_LLM_ARGS ?= trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
 # The LLM alone at the quick size: seed 0 (it does not depend on the seed), one scenario a chunk
-# (chunk k's env draws its OU turns from eval_seed + k), and QUICK_LLM_ALONE_BUDGET decisions an
-# invocation: an episode that does not land is 1000 decisions, about 26 minutes here, so the
-# 32-scenario set is about 14 h. Each `make quick-llm` scores the next scenarios; the report
+# (chunk k's env draws its OU turns from eval_seed + k), in two shards (one a core, each with its
+# own one-thread LLM server), and QUICK_LLM_ALONE_BUDGET decisions an invocation of each: an
+# episode that does not land is 1000 decisions, 26-45 minutes on one core here (the host's speed
+# varies), so the 32-scenario set is 7-12 h on two. Each `make quick-llm` scores the next scenarios; the report
 # puts the scored ones beside every method's episodes on the same scenarios (llm_alone table),
 # and results/quick/llm_alone_episodes.md gives each episode, the cost, and the heuristic flown with the
 # same chunks and seeds.
@@ -276,7 +282,7 @@ QUICK_LLM_ALONE_BUDGET ?= 4000
 QUICK_LLM_ALONE_ARGS ?= seed=0 trainer.eval_chunk=1 trainer.llm_call_budget=$(QUICK_LLM_ALONE_BUDGET)
 quick-llm: $(STAMP)
 	$(MAKE) experiments-llm-train PROFILE=quick EXP_ARGS="$(QUICK_LLM_TRAIN_ARGS)" LLM_ALONE=0
-	$(MAKE) experiments-llm-alone PROFILE=quick LLM_ALONE_ARGS="$(QUICK_LLM_ALONE_ARGS)"
+	$(MAKE) experiments-llm-alone PROFILE=quick LLM_ALONE_SHARDS=2 LLM_ALONE_ARGS="$(QUICK_LLM_ALONE_ARGS)"
 	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
 	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
 	$(MAKE) experiments-results PROFILE=quick

@@ -25,11 +25,14 @@ EPISODE_COLUMNS = ("row", "length", "llm_calls", "llm_fallbacks", "collided", "l
                    "rz_speeding", "data_collected", "data_total", "energy_used")
 
 
-def heuristic_on(run_dir: Path, cfg: dict[str, Any], n: int) -> dict[str, float]:
-    """The greedy heuristic on the run's first ``n`` scenarios, chunked and seeded as the run."""
+def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[str, float]:
+    """The greedy heuristic on the run's scored scenarios ``rows``, chunked and seeded as the run
+    (the chunks up to the last of them are flown, so every chunk keeps its seed and rows)."""
+    import torch
     from omegaconf import OmegaConf
 
     from uavlae.envs import make_env_config
+    from uavlae.envs.metrics import aggregate
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import eval_set_path
     from uavlae.factories import make_heuristic
@@ -38,31 +41,37 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], n: int) -> dict[str, float]
     c = OmegaConf.create(cfg)
     env_cfg = make_env_config(c.env)
     tr = c.trainer
-    scenarios = load_scenarios(eval_set_path(run_dir, tr.get("eval_set")))[:n]  # a sweep's shared set, else the run's own
+    scenarios = load_scenarios(eval_set_path(run_dir, tr.get("eval_set")))  # a sweep's shared set, else the run's own
+    chunk = int(tr.eval_chunk or len(scenarios))
+    scenarios = scenarios[: (max(rows) // chunk + 1) * chunk]
     with tempfile.TemporaryDirectory() as tmp:
         ev = LLMAloneEvaluation(env_cfg, scenarios, make_heuristic(c, env_cfg), tmp, seed=int(tr.eval_seed),
                                 chunk=tr.eval_chunk, max_steps=tr.eval_max_steps, n_plots=0)
-        return ev.run()["metrics"]
+        records = ev.run()["records"]
+    keep = torch.isin(records["row"], torch.tensor(rows))
+    return aggregate({k: v[keep] for k, v in records.items()})
 
 
-def in_flight(run_dir: Path) -> dict[str, Any] | None:
-    """The episode the budget paused, so far (not scored): its slot, data and energy, events."""
+def in_flight(run_dir: Path) -> list[dict[str, Any]]:
+    """The episodes paused in flight, so far (not scored), one a progress file (shard): their
+    scenario and slot, data and energy, events."""
     import torch
 
-    file = train_eval_dir(run_dir, 0) / "progress.pt"
-    if not file.is_file():
-        return None
-    state = torch.load(file, map_location="cpu", weights_only=False)
-    fl = state["in_flight"]
-    if fl is None:
-        return None
-    nxt, acc = fl["last_next"], fl["tracker"]["acc"]
-    st = nxt.get("state")
-    return {"scenario": int(state["next_chunk"]) * int(state["chunk"]), "slot": int(fl["step"]),
-            "position": [round(float(v), 1) for v in st.get("position")[0].tolist()],
-            "data_collected": float(st.get("data_collected")[0]), "data_total": float(st.get("data_total")[0]),
-            "energy_used": float(st.get("energy_used")[0]), "collided": bool(acc["collided"][0]),
-            "boundary_exit": bool(acc["boundary_exit"][0]), "rz_speeding": bool(acc["rz_speeding"][0])}
+    out = []
+    for file in sorted(train_eval_dir(run_dir, 0).glob("progress*.pt")):
+        state = torch.load(file, map_location="cpu", weights_only=False)
+        fl = state["in_flight"]
+        if fl is None:
+            continue
+        k = fl["chunk"] if "chunk" in fl else state["next_chunk"]  # format 1 had chunks in order
+        nxt, acc = fl["last_next"], fl["tracker"]["acc"]
+        st = nxt.get("state")
+        out.append({"scenario": int(k) * int(state["chunk"]), "slot": int(fl["step"]),
+                    "position": [round(float(v), 1) for v in st.get("position")[0].tolist()],
+                    "data_collected": float(st.get("data_collected")[0]), "data_total": float(st.get("data_total")[0]),
+                    "energy_used": float(st.get("energy_used")[0]), "collided": bool(acc["collided"][0]),
+                    "boundary_exit": bool(acc["boundary_exit"][0]), "rz_speeding": bool(acc["rz_speeding"][0])})
+    return out
 
 
 def build(run_dir: Path, command: str | None) -> dict[str, Any]:
@@ -90,8 +99,8 @@ def build(run_dir: Path, command: str | None) -> dict[str, Any]:
         "in_flight_step": la.get("in_flight_step"),
         "in_flight_so_far": in_flight(run_dir),
         "metrics": {k: final.get(f"eval/{k}") for k in (*PAPER_METRICS, "boundary_exit_rate", "mean_length")},
-        "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, n).items()
-                                      if k in (*PAPER_METRICS, "mean_length")} if n else None),
+        "heuristic_same_scenarios": ({k: v for k, v in heuristic_on(run_dir, cfg, [int(r["row"]) for r in episodes]).items()
+                                      if k in (*PAPER_METRICS, "mean_length")} if episodes else None),
         "cost": la["cost"],
         "episodes": [{"scenario": int(r["row"]), **{k: r.get(k) for k in EPISODE_COLUMNS}} for r in episodes],
         "machine": describe_machine(),
@@ -126,8 +135,7 @@ def markdown(res: dict[str, Any]) -> str:
     if h:
         lines.append(f"| heuristic, same scenarios | {res['episodes_scored']} | "
                      + " | ".join(f(h[k]) for k in PAPER_METRICS) + f" | {f(h['mean_length'])} |")
-    fl = res.get("in_flight_so_far")
-    if fl:
+    for fl in res.get("in_flight_so_far") or []:
         lines += ["", f"Paused episode (scenario {fl['scenario']}, not scored), after {fl['slot']} slots: at "
                   f"{tuple(fl['position'])}, data {fl['data_collected']:.2f} of {fl['data_total']:.2f}, energy "
                   f"{fl['energy_used']:.0f} J, collided {fl['collided']}, left the area {fl['boundary_exit']}, "

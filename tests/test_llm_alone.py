@@ -205,6 +205,65 @@ def test_ctrl_c_pauses_at_the_last_saved_slot(tmp_path):
     assert done["cost"]["calls"] == straight["cost"]["calls"]
 
 
+def test_two_shards_fly_each_its_chunks_into_one_folder_and_score_the_union(tmp_path):
+    cfg, scen = _world(3)
+    straight = _evaluation(cfg, scen, tmp_path / "straight", chunk=1).run()
+    lengths = straight["records"]["length"].tolist()
+    out = tmp_path / "sharded"
+
+    # shard 1 of 2 owns chunk 1 only; paused by its budget a few steps in
+    s1 = _evaluation(cfg, scen, out, chunk=1, shard=1, shards=2, budget=10).run()
+    assert s1["chunks_done"] == 0 and s1["in_flight_step"] == 10 and s1["progress_files"] == 1
+    # shard 0 owns chunks 0 and 2 and flies both; it scores what it finished, shard 1's in-flight
+    # decisions counted but not scored
+    s0 = _evaluation(cfg, scen, out, chunk=1, shard=0, shards=2).run()
+    assert s0["chunks_done"] == 2 and not s0["complete"] and s0["records"]["row"].tolist() == [0, 2]
+    assert s0["cost"]["calls"] == lengths[0] + lengths[2] + 10 and s0["cost"]["calls_in_flight"] == 10
+    assert sorted(p.name for p in out.iterdir() if p.suffix == ".pt") == ["progress.shard0of2.pt", "progress.shard1of2.pt"]
+    # shard 1 again: finishes chunk 1, then sees every chunk done
+    ev1 = _evaluation(cfg, scen, out, chunk=1, shard=1, shards=2)
+    done = ev1.run()
+    assert ev1.asked == lengths[1] - 10 and done["complete"] and done["progress_files"] == 2
+    for k in ("row", "length", "data_collected", "energy_used", "collided", "landed", "llm_calls"):
+        assert done["records"][k].tolist() == straight["records"][k].tolist(), k
+    for k in ("DCR", "CR", "SLR", "RVR", "ECR", "mean_return"):
+        assert done["metrics"][k] == pytest.approx(straight["metrics"][k], nan_ok=True), k
+    assert done["cost"]["calls"] == sum(lengths) and done["cost"]["calls_in_flight"] == 0
+    assert done["cost"]["invocations"] == 3  # shard 0 once, shard 1 twice
+    assert [i for i, _ in done["trajectories"]] == [0, 1, 2]
+
+    # one process over the same folder flies nothing: every chunk is done in the shards' files;
+    # a budget of 0 asks nothing and scores the same union
+    for kw in ({}, {"budget": 0}):
+        ev = _evaluation(cfg, scen, out, chunk=1, **kw)
+        res = ev.run()
+        assert ev.asked == 0 and res["complete"] and res["records"]["length"].tolist() == lengths
+    with pytest.raises(ValueError, match="eval_shard=2 must be in"):
+        _evaluation(cfg, scen, out, chunk=1, shard=2, shards=2)
+
+
+def test_a_progress_file_of_the_first_format_continues(tmp_path):
+    """Format 1 kept chunks in order (``next_chunk``) and every episode's path in one list."""
+    cfg, scen = _world(3)
+    straight = _evaluation(cfg, scen, tmp_path / "straight", chunk=1).run()
+    lengths = straight["records"]["length"].tolist()
+    out = tmp_path / "old"
+    _evaluation(cfg, scen, out, chunk=1, budget=lengths[0] + lengths[1] + 7).run()  # chunks 0, 1 done, 2 in flight
+    state = torch.load(out / "progress.pt", weights_only=False)
+    assert state["done"] == [0, 1] and state["in_flight"]["chunk"] == 2
+    del state["in_flight"]["chunk"]
+    old = {k: v for k, v in state.items() if k not in ("done", "totals")}
+    old.update(version=1, next_chunk=2, trajectories=[t for ts in state["trajectories"] for t in ts])
+    torch.save(old, out / "progress.pt")
+
+    ev = _evaluation(cfg, scen, out, chunk=1)
+    res = ev.run()
+    assert ev.asked == lengths[2] - 7 and res["complete"]
+    assert res["records"]["length"].tolist() == lengths and [i for i, _ in res["trajectories"]] == [0, 1, 2]
+    assert [len(t) for _, t in res["trajectories"]] == [n + 1 for n in lengths]
+    assert torch.load(out / "progress.pt", weights_only=False)["version"] == 2
+
+
 # ---------------------------------------------------------------------------- the real local server
 
 
@@ -275,3 +334,33 @@ def test_evaluate_entry_point_flies_the_llm_alone_the_same_way(tmp_path, local_l
     rec = json.loads((out / "evaluation.json").read_text())
     assert rec["llm_alone"]["complete"] is True and rec["llm_alone"]["episodes_scored"] == 2 == agg["n_episodes"]
     assert rec["llm_alone"]["cost"]["calls"] == 4 == rec["controller_stats"]["advised"]
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_exp_llm_in_two_shards_on_the_local_server_fills_one_run(tmp_path, local_llm):
+    from experiments.llm_alone_table import build, markdown
+    from uavlae.train import reuse_state, run
+
+    run_dir = tmp_path / "llm"
+    args = ["+exp=llm", f"run_dir={run_dir}", f"llm.base_url={local_llm.base_url}",
+            f"llm.cache_path={tmp_path / 'cache.sqlite'}", "trainer.eval_episodes=3", "trainer.eval_chunk=1",
+            "trainer.eval_max_steps=2", "trainer.eval_plots=0", "trainer.progress_bar=false",
+            "logger.wandb.mode=disabled", "experiment.reuse=true", "trainer.eval_shards=2"]
+    one = run(_cfg(*args, "trainer.eval_shard=1"))  # scenario 1 (chunk 1 of 3) only
+    assert one["eval/complete"] == 0 and one["eval/episodes_scored"] == 1 and one["llm/calls"] == 2
+    # the same run_dir, the other shard: not "another config"; it flies chunks 0 and 2 and scores all three
+    assert reuse_state(_cfg(*args, "trainer.eval_shard=0"))[0] == "new"
+    both = run(_cfg(*args, "trainer.eval_shard=0"))
+    assert both["eval/complete"] == 1 and both["eval/episodes_scored"] == 3
+    assert both["llm/calls"] == 6 == both["llm/calls_scored"] and both["llm/invocations"] == 2
+    assert both["llm/requests"] >= 6 and both["llm/prompt_tokens"] > 0  # shard 1's tokens counted too
+    rows = list(csv.DictReader((run_dir / "eval" / "frames_000000000" / "episodes.csv").open()))
+    assert [int(r["row"]) for r in rows] == [0, 1, 2] and [int(r["llm_calls"]) for r in rows] == [2, 2, 2]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert (summary["llm_alone"]["shard"], summary["llm_alone"]["shards"]) == (0, 2)
+    assert reuse_state(_cfg(*args, "trainer.eval_shard=1"))[0] == "done"
+    table = build(run_dir, "test")
+    assert table["episodes_scored"] == 3 and [e["scenario"] for e in table["episodes"]] == [0, 1, 2]
+    assert table["in_flight_so_far"] == [] and table["heuristic_same_scenarios"]["mean_length"] == 2.0
+    assert "| llm | 3 |" in markdown(table)

@@ -272,6 +272,7 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
             ev = LLMAloneEvaluation(
                 env_cfg, scenarios, policy, out, seed=tr.eval_seed, chunk=tr.eval_chunk, max_steps=tr.eval_max_steps,
                 budget=tr.llm_call_budget, fingerprint=fingerprint, n_plots=tr.eval_plots, device=cfg.device,
+                shard=tr.eval_shard, shards=tr.eval_shards,
             )
             res = ev.run()
             ev.write(res, title=name)

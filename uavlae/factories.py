@@ -82,10 +82,14 @@ class TrainerConfig(StrictModel):
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
     baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
     eval_chunk: int | None = Field(default=None, ge=1)  # controller=llm: scenarios flown together (None: all)
-    llm_call_budget: int | None = Field(default=None, ge=1)  # controller=llm: LLM decisions this invocation may ask
+    llm_call_budget: int | None = Field(default=None, ge=0)  # controller=llm: LLM decisions this invocation may ask (0: only score)
+    eval_shards: int = Field(default=1, ge=1)  # controller=llm: processes that fly the evaluation side by side
+    eval_shard: int = Field(default=0, ge=0)  # controller=llm: which of them this one is
 
     @model_validator(mode="after")
     def _divisible(self) -> "TrainerConfig":
+        if self.eval_shard >= self.eval_shards:
+            raise ValueError(f"trainer.eval_shard={self.eval_shard} must be below trainer.eval_shards={self.eval_shards}")
         if self.frames_per_batch % self.env_batch_size:
             raise ValueError(
                 f"trainer.frames_per_batch={self.frames_per_batch} must be a multiple of "

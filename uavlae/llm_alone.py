@@ -23,9 +23,21 @@ resumes where it left off:
   score is that of a subset of scenarios, not biased toward short episodes); ``complete`` says
   whether every chunk is done, ``episodes_scored`` how many episodes the metrics cover.
 
-Chunk ``k`` seeds its env with ``seed + k``: with one chunk the evaluation is exactly the
-:class:`~uavlae.evaluate.Evaluator`'s. The cost of the LLM (calls, HTTP requests, tokens,
-failures, wall clock, calls/s) comes back beside the metrics, summed over every invocation.
+- Shards (``trainer.eval_shards=S trainer.eval_shard=s``): S processes fly one evaluation
+  side by side, each with its own LLM server, into the same folder. Shard ``s`` takes the chunks
+  ``k`` with ``k % S == s`` and keeps its progress in ``progress.shard<s>of<S>.pt``; every
+  process skips a chunk that another progress file of the folder has finished or holds in
+  flight, and scores the union of the finished chunks of every file. So a sweep over
+  ``trainer.eval_shard=0,1`` runs on both cores of a small machine or as an array of cluster
+  jobs, and whichever process writes last writes every episode finished by then. A chunk left in
+  flight by a shard count no longer run is finished by that count's command, not taken over.
+- ``trainer.llm_call_budget=0`` asks nothing: it writes the metrics of what the progress files
+  hold (after the shards have stopped, the union of all of them).
+
+Chunk ``k`` seeds its env with ``seed + k``, whoever flies it: with one chunk the evaluation is
+exactly the :class:`~uavlae.evaluate.Evaluator`'s. The cost of the LLM (calls, HTTP requests,
+tokens, failures, wall clock, calls/s) comes back beside the metrics, summed over every
+invocation and every shard (the wall clock too: the time one process would have taken).
 """
 
 from __future__ import annotations
@@ -51,7 +63,7 @@ from uavlae.policies.override import FALLBACK
 log = logging.getLogger(__name__)
 
 PROGRESS = "progress.pt"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: chunks kept by index (shards finish them out of order); 1 is read and upgraded
 # the per-episode LLM columns added to episodes.csv
 LLM_COLUMNS = ("llm_calls", "llm_fallbacks")
 
@@ -76,11 +88,13 @@ class LLMAloneEvaluation:
         seed: chunk ``k``'s env is seeded with ``seed + k``.
         chunk: scenarios flown together (``None``: all of them).
         max_steps: step budget per episode (``None``: ``env_cfg.t_max``).
-        budget: LLM decisions this invocation may ask (``None``: no limit).
+        budget: LLM decisions this invocation may ask (``None``: no limit; 0: none, only score
+            what the progress files hold).
         fingerprint: what identifies the run (its config); a progress file of another one is
             an error.
         n_plots: trajectories drawn at the end.
         device: where the env runs.
+        shard, shards: this process flies the chunks ``k`` with ``k % shards == shard``.
     """
 
     def __init__(
@@ -97,6 +111,8 @@ class LLMAloneEvaluation:
         fingerprint: Mapping[str, Any] | None = None,
         n_plots: int = 3,
         device: str | torch.device = "cpu",
+        shard: int = 0,
+        shards: int = 1,
     ):
         self.env_cfg = make_env_config(env_cfg)
         self.scenarios = list(scenarios)
@@ -109,7 +125,7 @@ class LLMAloneEvaluation:
         if self.chunk < 1:
             raise ValueError(f"trainer.eval_chunk must be >= 1, got {chunk!r}")
         self.max_steps = int(max_steps if max_steps is not None else self.env_cfg.t_max)
-        if budget is not None and int(budget) < self.chunk:
+        if budget is not None and 0 < int(budget) < self.chunk:
             raise ValueError(
                 f"trainer.llm_call_budget={budget} is below the {self.chunk} rows a step of a chunk asks "
                 "(trainer.eval_chunk): no step would fit; raise the budget or lower the chunk"
@@ -119,21 +135,22 @@ class LLMAloneEvaluation:
         self.n_plots = int(n_plots)
         self.device = torch.device(device)
         self.n_chunks = -(-len(self.scenarios) // self.chunk)
+        self.shard, self.shards = int(shard), int(shards)
+        if self.shards < 1 or not 0 <= self.shard < self.shards:
+            raise ValueError(f"trainer.eval_shard={shard} must be in [0, trainer.eval_shards={shards})")
+        self.own_chunks = [k for k in range(self.n_chunks) if k % self.shards == self.shard]
         self.asked = 0  # LLM decisions asked in this invocation (the budget's counter)
 
-    # ------------------------------------------------------------------ progress file
+    # ------------------------------------------------------------------ progress files
     @property
     def progress_file(self) -> Path:
-        return self.out / PROGRESS
+        return self.out / (PROGRESS if self.shards == 1 else f"progress.shard{self.shard}of{self.shards}.pt")
 
-    def _load(self) -> dict[str, Any]:
-        if not self.progress_file.is_file():
-            return {"version": FORMAT_VERSION, "fingerprint": self.fingerprint, "chunk": self.chunk,
-                    "next_chunk": 0, "records": [], "trajectories": [], "in_flight": None, "policy": None,
-                    "wall_s": 0.0, "invocations": 0}
-        state = torch.load(self.progress_file, map_location="cpu", weights_only=False)
-        if state.get("version") != FORMAT_VERSION:
-            raise ValueError(f"{self.progress_file}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
+    def _read(self, path: Path) -> dict[str, Any]:
+        """A progress file, checked against this run's config and upgraded to the current format."""
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        if state.get("version") not in (1, FORMAT_VERSION):
+            raise ValueError(f"{path}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
         if state["fingerprint"] != self.fingerprint or state["chunk"] != self.chunk:
             from uavlae.evaluate import flatten_keys
 
@@ -141,12 +158,47 @@ class LLMAloneEvaluation:
             have = {**flatten_keys(state["fingerprint"]), "eval_chunk": state["chunk"]}
             changed = sorted(k for k in set(want) | set(have) if want.get(k) != have.get(k))
             raise ValueError(
-                f"{self.progress_file} holds the progress of another config (differs in {changed[:8]}); "
+                f"{path} holds the progress of another config (differs in {changed[:8]}); "
                 "remove it or pick another run_dir"
             )
+        if state["version"] == 1:  # chunks 0 .. next_chunk - 1 in order, their episodes' paths in one list
+            sizes = [len(r["row"]) for r in state["records"]]
+            flat, trajs = list(state.pop("trajectories")), []
+            for n in sizes:
+                trajs.append(flat[:n])
+                flat = flat[n:]
+            k = state.pop("next_chunk")
+            state.update(version=FORMAT_VERSION, done=list(range(k)), trajectories=trajs, totals=None)
+            if state["in_flight"] is not None:
+                state["in_flight"]["chunk"] = k
         return state
 
+    def _load(self) -> dict[str, Any]:
+        if not self.progress_file.is_file():
+            return {"version": FORMAT_VERSION, "fingerprint": self.fingerprint, "chunk": self.chunk,
+                    "done": [], "records": [], "trajectories": [], "in_flight": None, "policy": None,
+                    "totals": None, "wall_s": 0.0, "invocations": 0}
+        return self._read(self.progress_file)
+
+    def _others(self) -> list[dict[str, Any]]:
+        """The progress of the other shards (and shard counts) in the folder."""
+        own = self.progress_file.name
+        return [self._read(p) for p in sorted(self.out.glob("progress*.pt")) if p.name != own]
+
+    def _next_chunk(self, state: dict[str, Any]) -> int | None:
+        """This process's chunk in flight, else its first chunk no progress file has finished or
+        holds in flight; None when it has none left."""
+        if state["in_flight"] is not None:
+            return int(state["in_flight"]["chunk"])
+        taken = set(state["done"])
+        for other in self._others():
+            taken.update(other["done"])
+            if other["in_flight"] is not None:
+                taken.add(int(other["in_flight"]["chunk"]))
+        return next((k for k in self.own_chunks if k not in taken), None)
+
     def _save(self, state: dict[str, Any]) -> None:
+        state["totals"] = self._totals()  # what the other shards read of this one's cost
         buf = io.BytesIO()
         torch.save(state, buf)
         atomic_write(self.progress_file, lambda fh: fh.write(buf.getvalue()))
@@ -159,6 +211,10 @@ class LLMAloneEvaluation:
             return self.policy.get_extra_state()
         cache = getattr(self.policy, "cache_state", None)  # a bare heuristic: its per-row memory
         return {"cache": cache()} if cache is not None else None
+
+    def _totals(self) -> dict[str, float]:
+        totals = self.policy.run_totals() if hasattr(self.policy, "run_totals") else {}
+        return {k: float(v) for k, v in totals.items() if isinstance(v, (int, float))}
 
     def _load_policy_state(self, state: Any) -> None:
         if state is None:
@@ -178,13 +234,13 @@ class LLMAloneEvaluation:
         paused = False
         try:
             with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-                while state["next_chunk"] < self.n_chunks and not paused:
-                    paused = not self._fly_chunk(state, lambda: wall0 + time.perf_counter() - t0)
+                while not paused and (k := self._next_chunk(state)) is not None:
+                    paused = not self._fly_chunk(state, k, lambda: wall0 + time.perf_counter() - t0)
         except KeyboardInterrupt:  # Ctrl-C / SIGINT: a pause at the last saved slot
             if not self.progress_file.is_file():
                 raise
             log.warning("interrupted: the progress of the last finished slot is kept; the same command continues")
-            state = torch.load(self.progress_file, map_location="cpu", weights_only=False)
+            state = self._read(self.progress_file)
             self._load_policy_state(state["policy"])
             return self.result(state)
         state["wall_s"] = wall0 + time.perf_counter() - t0
@@ -192,9 +248,8 @@ class LLMAloneEvaluation:
         self._save(state)
         return self.result(state)
 
-    def _fly_chunk(self, state: dict[str, Any], wall: Any) -> bool:
-        """Fly chunk ``state["next_chunk"]`` on from where it stands; False if the budget ran out."""
-        k = state["next_chunk"]
+    def _fly_chunk(self, state: dict[str, Any], k: int, wall: Any) -> bool:
+        """Fly chunk ``k`` on from where it stands; False if the budget ran out."""
         scen = self.scenarios[k * self.chunk:(k + 1) * self.chunk]
         b = len(scen)
         env = UAVEnv(self.env_cfg, batch_size=b, device=self.device, seed=self.seed + k, scenarios=scen)
@@ -204,7 +259,7 @@ class LLMAloneEvaluation:
             env.set_seed(self.seed + k)
             td = env.reset()
             zeros = torch.zeros(b, dtype=torch.int64, device=self.device)
-            fl = {"step": 0, "finished": torch.zeros(b, dtype=torch.bool, device=self.device), "length": zeros.clone(),
+            fl = {"chunk": k, "step": 0, "finished": torch.zeros(b, dtype=torch.bool, device=self.device), "length": zeros.clone(),
                   "llm_calls": zeros.clone(), "llm_fallbacks": zeros.clone(),
                   "positions": [td.get(("state", "position")).reshape(b, 2).clone()]}
         else:
@@ -247,8 +302,8 @@ class LLMAloneEvaluation:
             records[c] = fl[c].clone()
         traj = torch.stack(fl["positions"], 0).cpu()
         state["records"].append({key: v.cpu() for key, v in records.items()})
-        state["trajectories"].extend(traj[: int(n) + 1, i] for i, n in enumerate(fl["length"].tolist()))
-        state["next_chunk"] = k + 1
+        state["trajectories"].append([traj[: int(n) + 1, i] for i, n in enumerate(fl["length"].tolist())])
+        state["done"].append(k)
         state["in_flight"] = None
         state["wall_s"] = wall()
         state["policy"] = self._policy_state()
@@ -258,42 +313,53 @@ class LLMAloneEvaluation:
 
     # ------------------------------------------------------------------ what it gives
     def result(self, state: dict[str, Any]) -> dict[str, Any]:
-        """``metrics`` over the finished chunks' episodes (NaN with none), ``complete``,
-        ``episodes_scored`` / ``episodes_total``, ``cost`` and ``records``."""
-        chunks = state["records"]
-        records = concat_records(chunks) if chunks else {}
-        if chunks:
+        """``metrics`` over the episodes of the chunks finished in any progress file of the
+        folder (NaN with none), ``complete``, ``episodes_scored`` / ``episodes_total``,
+        ``cost`` (every file's) and ``records``; ``in_flight_step`` is this process's."""
+        states = [state, *self._others()]
+        chunks: dict[int, tuple[dict, list]] = {}
+        for st in states:
+            for k, rec, traj in zip(st["done"], st["records"], st["trajectories"]):
+                chunks.setdefault(int(k), (rec, traj))  # a chunk two processes raced for counts once
+        order = sorted(chunks)
+        parts = [chunks[k][0] for k in order]
+        records = concat_records(parts) if parts else {}
+        if parts:
             for c in LLM_COLUMNS:
-                records[c] = torch.cat([r[c] for r in chunks])
-        agg = aggregate(records) if chunks else aggregate([])
+                records[c] = torch.cat([r[c] for r in parts])
+        agg = aggregate(records) if parts else aggregate([])
+        calls_scored = int(records["llm_calls"].sum()) if parts else 0
         in_flight = state["in_flight"]
-        calls_scored = int(records["llm_calls"].sum()) if chunks else 0
-        cost = self.cost(state, calls_scored, 0 if in_flight is None else int(in_flight["llm_calls"].sum()))
-        return {"metrics": agg, "complete": state["next_chunk"] >= self.n_chunks,
+        calls_in_flight = sum(int(st["in_flight"]["llm_calls"].sum()) for st in states if st["in_flight"] is not None)
+        trajectories = [(k * self.chunk + i, t) for k in order for i, t in enumerate(chunks[k][1])]
+        return {"metrics": agg, "complete": len(order) >= self.n_chunks,
                 "episodes_scored": int(agg["n_episodes"]), "episodes_total": len(self.scenarios),
-                "chunks_done": int(state["next_chunk"]), "chunks": self.n_chunks,
+                "chunks_done": len(order), "chunks": self.n_chunks,
                 "in_flight_step": None if in_flight is None else int(in_flight["step"]),
-                "cost": cost, "records": records, "trajectories": state["trajectories"],
-                "invocations": int(state["invocations"])}
+                "cost": self.cost(states, calls_scored, calls_in_flight), "records": records,
+                "trajectories": trajectories, "invocations": int(state["invocations"]),
+                "shard": self.shard, "shards": self.shards, "progress_files": len(states)}
 
-    def cost(self, state: dict[str, Any], calls_scored: int, calls_in_flight: int) -> dict[str, float]:
-        """What the LLM cost over every invocation: ``calls`` (decisions asked, one per flying
-        row and step: ``calls_scored`` in the scored episodes plus ``calls_in_flight`` in the
-        chunk in flight), the advisor's HTTP requests, cache hits, ask-again attempts,
-        failures (answered by the fallback), prompt and completion tokens, latency quantiles,
-        the wall clock and calls per second of it."""
-        totals = self.policy.run_totals() if hasattr(self.policy, "run_totals") else {}
-        wall = float(state["wall_s"])
+    def cost(self, states: list[dict[str, Any]], calls_scored: int, calls_in_flight: int) -> dict[str, float]:
+        """What the LLM cost over every invocation of every progress file (``states[0]`` is this
+        process's, whose policy counts it live): ``calls`` (decisions asked, one per flying row
+        and step: ``calls_scored`` in the scored episodes plus ``calls_in_flight`` in the chunks
+        in flight), the advisor's HTTP requests, cache hits, ask-again attempts, failures
+        (answered by the fallback), prompt and completion tokens, the latency quantiles (the
+        largest over the files), the wall clock (summed over the files: one process's time) and
+        calls per second of it."""
+        every = [self._totals(), *(st.get("totals") or {} for st in states[1:])]
+        wall = sum(float(st["wall_s"]) for st in states)
         calls = calls_scored + calls_in_flight
         out = {"calls": calls, "calls_scored": calls_scored, "calls_in_flight": calls_in_flight,
                "wall_s": wall, "calls_per_s": calls / wall if wall > 0 else float("nan"),
-               "fallbacks": int(totals.get("source/fallback", 0)),
-               "invocations": int(state["invocations"])}
+               "fallbacks": int(sum(t.get("source/fallback", 0) for t in every)),
+               "invocations": int(sum(st["invocations"] for st in states))}
         for k in ("calls", "requests", "cache_hits", "ask_again", "failures", "retries", "prompt_tokens",
                   "completion_tokens", "latency_p50_s", "latency_p95_s"):
-            v = totals.get(f"advisor/{k}")
-            if v is not None:
-                out["http_calls" if k == "calls" else k] = float(v)
+            vs = [t[f"advisor/{k}"] for t in every if f"advisor/{k}" in t]
+            if vs:
+                out["http_calls" if k == "calls" else k] = float(max(vs) if k.startswith("latency") else sum(vs))
         return out
 
     def write(self, result: Mapping[str, Any], title: str = "") -> None:
@@ -303,6 +369,6 @@ class LLMAloneEvaluation:
         save_aggregates(dict(result["metrics"]), self.out / "metrics.json")
         from uavlae.envs.render import draw_scenario
 
-        for i, traj in enumerate(result["trajectories"][: self.n_plots]):
+        for i, traj in result["trajectories"][: self.n_plots]:
             draw_scenario(self.scenarios[i], [traj], path=self.out / f"trajectory_{i}.png",
                           title=f"{title} scenario {i}".strip(), cfg=self.env_cfg)

@@ -80,7 +80,9 @@ def _resolved(cfg: DictConfig) -> dict[str, Any]:
 
 # Keys that may differ between a sweep's re-run and the run it finds in its run_dir (the LLM
 # alone's call budget is what one invocation may spend: a re-run with another continues).
-REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", "trainer.llm_call_budget", *RESUME_RUNTIME_KEYS)
+# the LLM alone's budget and shards: how a run is split into invocations and processes, not what it is
+REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", "trainer.llm_call_budget", "trainer.eval_shard",
+                      "trainer.eval_shards", *RESUME_RUNTIME_KEYS)
 
 
 def _comparable(cfg_dict: dict[str, Any]) -> dict[str, Any]:
@@ -408,7 +410,7 @@ def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, log
         ev = LLMAloneEvaluation(
             env_cfg, evaluator.scenarios, controller, out, seed=tr.eval_seed, chunk=tr.eval_chunk,
             max_steps=tr.eval_max_steps, budget=tr.llm_call_budget, fingerprint=fingerprint,
-            n_plots=tr.eval_plots, device=cfg.device,
+            n_plots=tr.eval_plots, device=cfg.device, shard=tr.eval_shard, shards=tr.eval_shards,
         )
         res = ev.run()
         totals = controller.run_totals()
@@ -430,7 +432,7 @@ def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, log
         "eval_episodes": res["episodes_scored"], "metrics": {str(cfg.name): agg},
         "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
         "llm_alone": {**progress, "in_flight_step": res["in_flight_step"], "cost": res["cost"],
-                      "budget": tr.llm_call_budget, "chunk": ev.chunk},
+                      "budget": tr.llm_call_budget, "chunk": ev.chunk, "shard": ev.shard, "shards": ev.shards},
     })
     state = "complete" if res["complete"] else (
         f"paused by the call budget ({res['chunks_done']}/{res['chunks']} chunks done); run the same command to continue")
