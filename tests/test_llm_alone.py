@@ -141,6 +141,8 @@ def test_one_chunk_flies_what_the_evaluator_flies(tmp_path):
 
 
 def test_budget_pauses_and_the_same_run_continues_without_flying_an_episode_again(tmp_path):
+    from uavlae.llm_alone import LLMAloneEvaluation
+
     cfg, scen = _world(3)
     straight = _evaluation(cfg, scen, tmp_path / "straight", chunk=1).run()
     lengths = straight["records"]["length"].tolist()
@@ -178,6 +180,12 @@ def test_budget_pauses_and_the_same_run_continues_without_flying_an_episode_agai
     assert again.run()["complete"] and again.asked == 0
     with pytest.raises(ValueError, match="another config"):
         _evaluation(cfg, scen, out, chunk=2).run()
+    with pytest.raises(ValueError, match=r"another config \(differs in \['what'\]\)"):
+        LLMAloneEvaluation(cfg, scen, _heuristic_always(cfg), out, seed=3, chunk=1, fingerprint={"what": "other"}).run()
+    # a setting the file's config lacks (added to the code since) is not a difference
+    newer = LLMAloneEvaluation(cfg, scen, _heuristic_always(cfg), out, seed=3, chunk=1, n_plots=0,
+                               fingerprint={"what": "test", "added": None})
+    assert newer.run()["complete"] and newer.asked == 0
     with pytest.raises(ValueError, match="llm_call_budget=1 is below the 3 rows"):
         _evaluation(cfg, scen, tmp_path / "x", budget=1)
 

@@ -156,11 +156,15 @@ class LLMAloneEvaluation:
 
             want = {**flatten_keys(self.fingerprint), "eval_chunk": self.chunk}
             have = {**flatten_keys(state["fingerprint"]), "eval_chunk": state["chunk"]}
-            changed = sorted(k for k in set(want) | set(have) if want.get(k) != have.get(k))
-            raise ValueError(
-                f"{path} holds the progress of another config (differs in {changed[:8]}); "
-                "remove it or pick another run_dir"
-            )
+            # settings the file lacks were added to the code after it was written, with defaults
+            # that keep the earlier behaviour (as uavlae.train.reuse_state): not a difference
+            added = set(want) - set(have)
+            changed = sorted(k for k in set(want) | set(have) if k not in added and want.get(k) != have.get(k))
+            if changed:
+                raise ValueError(
+                    f"{path} holds the progress of another config (differs in {changed[:8]}); "
+                    "remove it or pick another run_dir"
+                )
         if state["version"] == 1:  # chunks 0 .. next_chunk - 1 in order, their episodes' paths in one list
             sizes = [len(r["row"]) for r in state["records"]]
             flat, trajs = list(state.pop("trajectories")), []
