@@ -16,13 +16,13 @@ resumes where it left off:
   the policy's counters; the accumulated wall clock) is written atomically to
   ``progress.pt`` in the evaluation folder. A killed run, or one whose budget ran out,
   continues from there when the same command is run again; finished episodes are never
-  flown again. Ctrl-C (SIGINT) pauses at the last saved slot and still writes the results. The file remembers the config it belongs to: another config is an error.
+  flown again. Ctrl-C (SIGINT) pauses at the last saved slot and still writes the results. The
+  file remembers the config it belongs to: another config is an error.
 - The budget counts LLM decisions (rows asked) in one invocation; a step is never split,
   so the run pauses before the first step that would go past it.
 - Only the episodes of finished chunks are scored (a chunk is a fixed part of the set, so the
   score is that of a subset of scenarios, not biased toward short episodes); ``complete`` says
   whether every chunk is done, ``episodes_scored`` how many episodes the metrics cover.
-
 - Shards (``trainer.eval_shards=S trainer.eval_shard=s``): S processes fly one evaluation
   side by side, each with its own LLM server, into the same folder. Shard ``s`` takes the chunks
   ``k`` with ``k % S == s`` and keeps its progress in ``progress.shard<s>of<S>.pt``; every
