@@ -814,13 +814,26 @@ def equal_frames_rows(runs: list[Run]) -> list[dict[str, Any]]:
     return rows
 
 
+def _spans(rows: list[int]) -> str:
+    """Sorted scenario indices as runs: [0, 1, 2, 4] -> "0-2, 4"."""
+    out: list[str] = []
+    for i in rows:
+        if out and int(out[-1].split("-")[-1]) == i - 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{i}"
+        else:
+            out.append(str(i))
+    return ", ".join(out)
+
+
 def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
     """The LLM alone of the train sweep (``+exp=llm``), finished or paused by its call budget, on
     the scenarios it has scored, and beside it every other method of the train sweep on those same
     scenarios: the rows of its final evaluation's ``episodes.csv`` (one episode per scenario, row i
-    = scenario i), the metrics of that subset per seed, then mean [95% CI] over seeds. The LLM
-    alone flies its chunks in order, so its scored episodes are the set's first
-    ``eval/episodes_scored`` scenarios."""
+    = scenario i), the metrics of that subset per seed, then mean [95% CI] over seeds. Which
+    scenarios it has scored is the ``row`` column of its own ``episodes.csv`` (shards finish
+    chunks out of order); without that file, the set's first ``eval/episodes_scored``."""
+    import torch
+
     out = []
     for cfg_file in sorted((root / "train").glob("*/seed*/config.json")):
         d = cfg_file.parent
@@ -833,7 +846,9 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
         k, n = alone.extra.get("episodes_scored", 0), alone.extra.get("episodes_total", 0)
         if k == 0:
             continue
-        scen = f"0-{k - 1} ({k} of {n})"
+        own = train_eval_dir(d, 0) / "episodes.csv"
+        scored = sorted(int(i) for i in load_records(own)["row"].tolist()) if own.is_file() else list(range(k))
+        scen = f"{_spans(scored)} ({k} of {n})"
         row = aggregate_rows([alone], {"method": alone.method, "scenarios": scen})
         row["episodes"] = str(k)
         row["advisor_calls"] = (f"{alone.extra.get('calls', 0)} decisions, {alone.extra.get('http_calls', 0)} HTTP, "
@@ -847,8 +862,8 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
             if not f.is_file():
                 continue
             rec = load_records(f)
-            pick = rec["row"] < k
-            if int(pick.sum()) != k:
+            pick = torch.isin(rec["row"], torch.tensor(scored))
+            if int(pick.sum()) != len(scored):
                 continue  # not one episode per scenario
             others[r.method].append(replace(r, metrics=_metrics_of(aggregate({c: v[pick] for c, v in rec.items()}))))
         for method in sorted(others, key=method_key):

@@ -332,6 +332,26 @@ def test_llm_alone_paused_beside_every_method_on_its_scored_scenarios(tmp_path):
     assert any("llm" in p and "2 of 4 episodes scored" in why for p, why in res["skipped"])
 
 
+def test_llm_alone_in_shards_is_compared_on_the_scenarios_it_scored(tmp_path):
+    """Two shards finished scenarios 0, 1 and 3 of 5 (2 in flight): the others are scored on
+    those three rows, not on the first three."""
+    root = tmp_path / "runs"
+    alone = _train_dir(root, "llm", 0, _metrics(0.1, 0.0), controller="llm", frames=0)
+    (alone / "final_metrics.json").write_text(json.dumps({
+        "frames": 0, **{f"eval/{k}": v for k, v in _metrics(0.1, 0.0).items()},
+        "eval/complete": 0, "eval/episodes_scored": 3, "eval/episodes_total": 5, "llm/calls": 3000}))
+    _full_episodes(alone, 0, row=[0, 1, 3], data_collected=[1, 1, 1], data_total=[10.0] * 3, energy_used=[0] * 3,
+                   energy_total=[1000.0] * 3)
+    # the heuristic: 10, 4, (0), 6, (0) of 10 collected -> DCR on rows 0, 1, 3 = 20/30
+    d = _train_dir(root, "heuristic", 0, _metrics(0.5, 0.5), controller="heuristic", frames=0)
+    _full_episodes(d, 0, data_collected=[10, 4, 0, 6, 0], data_total=[10.0] * 5, energy_used=[0] * 5,
+                   energy_total=[1000.0] * 5)
+    rows = {r["method"]: r for r in report.build(root, tmp_path / "out")["tables"]["llm_alone"]}
+    assert rows["llm"]["scenarios"] == rows["heuristic"]["scenarios"] == "0-1, 3 (3 of 5)"
+    assert rows["heuristic"]["DCR"] == pytest.approx(20 / 30)
+    assert report._spans([0, 1, 2, 4, 6, 7]) == "0-2, 4, 6-7" and report._spans([5]) == "5"
+
+
 def test_report_on_synthetic_runs(tmp_path):
     import matplotlib
 
