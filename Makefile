@@ -288,9 +288,14 @@ quick-llm: $(STAMP)
 	$(MAKE) experiments-results PROFILE=quick
 	$(BIN)/python -m experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone_episodes --command "make quick-llm"
 
+# The LLM alone at the paper's size: seed 0 (it does not depend on the seed), one scenario a
+# chunk, in PAPER_LLM_ALONE_SHARDS jobs: 100 scenarios of up to 1000 decisions at 1-4 s each
+# (the local model on one CPU thread) are 30-110 process-hours, 2-6 h a job
+PAPER_LLM_ALONE_SHARDS ?= 20
 paper: $(STAMP)
 	$(MAKE) experiments-train PROFILE=paper
-	$(MAKE) experiments-llm PROFILE=paper
+	$(MAKE) experiments-llm PROFILE=paper LLM_ALONE_SHARDS=$(PAPER_LLM_ALONE_SHARDS) \
+		LLM_ALONE_ARGS="seed=0 trainer.eval_chunk=1"
 	$(MAKE) experiments-scenarios PROFILE=paper
 	$(MAKE) experiments-sensitivity PROFILE=paper
 	$(MAKE) experiments-report PROFILE=paper
