@@ -123,7 +123,9 @@ def markdown(res: dict[str, Any]) -> str:
         f"load {res['machine']['load_average_1_5_15']} when the table was written (the machine is shared).",
         "",
         f"Scored: {res['episodes_scored']} of {res['episodes_total']} evaluation episodes (one scenario a chunk; "
-        f"a call budget of {res['call_budget_per_invocation']} decisions an invocation"
+        + (f"a call budget of {res['call_budget_per_invocation']} decisions an invocation"
+           if res["call_budget_per_invocation"] != 0 else
+           "the last invocation asked nothing and scored what every progress file holds, trainer.llm_call_budget=0")
         + ("" if res["complete"] else (
             f"; paused at slot {res['in_flight_step']} of the episode in flight" if res["in_flight_step"] is not None
             else "; paused before the next episode") + ": the same command continues") + "). Metrics cover finished episodes only.",
