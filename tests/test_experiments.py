@@ -459,6 +459,19 @@ def test_report_cli_names_a_missing_dir(tmp_path):
 # ---------------------------------------------------------------------------- train / evaluate
 
 
+def test_config_differences_by_hand():
+    from uavlae.evaluate import config_differences
+
+    want = {"env": {"t_max": 5, "maps": {"n": 2}}, "seed": 0, "lr": 1e-3}
+    have = {"env": {"t_max": 7}, "seed": 0, "old": 1}
+    # env.maps.n: only this run has it (added since); env.t_max: another value; old: since removed
+    changed, added = config_differences(want, have)
+    assert added == ["env.maps.n", "lr"] and changed == ["env.t_max", "old"]
+    assert config_differences(want, want) == ([], [])
+    # a value that became a section: the saved scalar's key is gone from this run, so changed
+    assert config_differences({"a": {"b": 1}}, {"a": 1}) == (["a"], ["a.b"])
+
+
 def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):
     from uavlae.checkpoint import LAST, PREV, checkpoint_dir, load_checkpoint
     from uavlae.train import run

@@ -292,16 +292,22 @@ def _cfg(*overrides: str):
         return compose("config", overrides=list(overrides))
 
 
+def _llm_run_args(tmp_path, server, episodes: int, max_steps: int, plots: int) -> list[str]:
+    """``+exp=llm`` on the local ``server``: a run of ``episodes`` one-scenario chunks cut at
+    ``max_steps``, reused by re-runs, with no wandb or progress bar."""
+    return ["+exp=llm", f"run_dir={tmp_path / 'llm'}", f"llm.base_url={server.base_url}",
+            f"llm.cache_path={tmp_path / 'cache.sqlite'}", f"trainer.eval_episodes={episodes}",
+            "trainer.eval_chunk=1", f"trainer.eval_max_steps={max_steps}", f"trainer.eval_plots={plots}",
+            "trainer.progress_bar=false", "logger.wandb.mode=disabled", "experiment.reuse=true"]
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(600)
 def test_exp_llm_on_the_local_server_pauses_on_its_budget_and_continues(tmp_path, local_llm):
     from uavlae.train import reuse_state, run
 
     run_dir = tmp_path / "llm"
-    args = ["+exp=llm", f"run_dir={run_dir}", f"llm.base_url={local_llm.base_url}",
-            f"llm.cache_path={tmp_path / 'cache.sqlite'}", "trainer.eval_episodes=2", "trainer.eval_chunk=1",
-            "trainer.eval_max_steps=3", "trainer.eval_plots=1", "trainer.progress_bar=false",
-            "logger.wandb.mode=disabled", "experiment.reuse=true"]
+    args = _llm_run_args(tmp_path, local_llm, episodes=2, max_steps=3, plots=1)
     first = run(_cfg(*args, "trainer.llm_call_budget=4"))
     # scenario 0's 3 steps, then 1 step of scenario 1 fits; the next would be the 5th decision
     assert first["eval/complete"] == 0 and first["eval/episodes_scored"] == 1 and first["eval/episodes_total"] == 2
@@ -351,10 +357,7 @@ def test_exp_llm_in_two_shards_on_the_local_server_fills_one_run(tmp_path, local
     from uavlae.train import reuse_state, run
 
     run_dir = tmp_path / "llm"
-    args = ["+exp=llm", f"run_dir={run_dir}", f"llm.base_url={local_llm.base_url}",
-            f"llm.cache_path={tmp_path / 'cache.sqlite'}", "trainer.eval_episodes=3", "trainer.eval_chunk=1",
-            "trainer.eval_max_steps=2", "trainer.eval_plots=0", "trainer.progress_bar=false",
-            "logger.wandb.mode=disabled", "experiment.reuse=true", "trainer.eval_shards=2"]
+    args = [*_llm_run_args(tmp_path, local_llm, episodes=3, max_steps=2, plots=0), "trainer.eval_shards=2"]
     one = run(_cfg(*args, "trainer.eval_shard=1"))  # scenario 1 (chunk 1 of 3) only
     assert one["eval/complete"] == 0 and one["eval/episodes_scored"] == 1 and one["llm/calls"] == 2
     # the same run_dir, the other shard: not "another config"; it flies chunks 0 and 2 and scores all three

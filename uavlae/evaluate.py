@@ -154,6 +154,17 @@ def flatten_keys(d: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def config_differences(want: Any, have: Any) -> tuple[list[str], list[str]]:
+    """How a saved config ``have`` differs from this run's ``want`` (nested dicts), as sorted
+    dotted keys ``(changed, added)``. ``added`` are the keys ``have`` lacks: settings added to the
+    code after it was saved, whose defaults keep the earlier behaviour, so no difference. A key
+    only ``have`` holds (one since removed) counts as changed."""
+    w, h = flatten_keys(want), flatten_keys(have)
+    added = sorted(set(w) - set(h))
+    changed = sorted(k for k in set(w) | set(h) if k not in added and w.get(k) != h.get(k))
+    return changed, added
+
+
 def overridden_env(saved_env: Any, overrides: Mapping[str, Any]) -> EnvConfig:
     """The checkpoint's world with ``overrides`` applied, its observation padding kept: every
     count's ``pad`` is set to what the trained actor saw before the overrides apply, so

@@ -152,14 +152,11 @@ class LLMAloneEvaluation:
         if state.get("version") not in (1, FORMAT_VERSION):
             raise ValueError(f"{path}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
         if state["fingerprint"] != self.fingerprint or state["chunk"] != self.chunk:
-            from uavlae.evaluate import flatten_keys
+            from uavlae.evaluate import config_differences
 
-            want = {**flatten_keys(self.fingerprint), "eval_chunk": self.chunk}
-            have = {**flatten_keys(state["fingerprint"]), "eval_chunk": state["chunk"]}
-            # settings the file lacks were added to the code after it was written, with defaults
-            # that keep the earlier behaviour (as uavlae.train.reuse_state): not a difference
-            added = set(want) - set(have)
-            changed = sorted(k for k in set(want) | set(have) if k not in added and want.get(k) != have.get(k))
+            # settings the file lacks were added to the code after it was written: no difference
+            changed, _ = config_differences({**self.fingerprint, "eval_chunk": self.chunk},
+                                            {**state["fingerprint"], "eval_chunk": state["chunk"]})
             if changed:
                 raise ValueError(
                     f"{path} holds the progress of another config (differs in {changed[:8]}); "

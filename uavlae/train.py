@@ -44,7 +44,7 @@ from uavlae.checkpoint import (
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.evaluate import Evaluator, flatten_keys, deterministic_actor, eval_set_path, load_or_make_eval_set
+from uavlae.evaluate import Evaluator, config_differences, flatten_keys, deterministic_actor, eval_set_path, load_or_make_eval_set
 from uavlae.factories import (
     CONF_DIR,
     behaviour_actor,
@@ -105,13 +105,12 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
     saved_file = run_dir / "config.json"
     if not cfg.experiment.reuse or not saved_file.is_file():
         return "new", None
-    want = flatten_keys(_comparable(_resolved(cfg)))
-    have = flatten_keys(_comparable(json.loads(saved_file.read_text())))
-    added = sorted(set(want) - set(have))
+    want = _comparable(_resolved(cfg))
+    changed, added = config_differences(want, _comparable(json.loads(saved_file.read_text())))
     if added:
+        flat = flatten_keys(want)
         log.warning("%s was made before these settings existed; reusing it as if at their values now: %s",
-                    run_dir, {k: want[k] for k in added})
-    changed = sorted(k for k in set(want) | set(have) if k not in added and want.get(k) != have.get(k))
+                    run_dir, {k: flat[k] for k in added})
     if changed:
         raise ValueError(
             f"{run_dir} holds a run of another config (differs in {changed[:8]}); "
