@@ -507,7 +507,8 @@ def _save(fig: Any, out: Path, stem: str, note: str) -> list[str]:
     files = []
     for ext in ("png", "pdf"):
         f = out / f"{stem}.{ext}"
-        fig.savefig(f, dpi=150, bbox_inches="tight")
+        # no creation date: a regenerated report changes a figure's bytes only when its content changes
+        fig.savefig(f, dpi=150, bbox_inches="tight", metadata={"CreationDate": None} if ext == "pdf" else None)
         files.append(f.name)
     import matplotlib.pyplot as plt
 

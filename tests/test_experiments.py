@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -402,6 +403,12 @@ def test_report_on_synthetic_runs(tmp_path):
                  "fig10_summary_radar", "fig11_sensitivity_actor_lr", "fig12_sensitivity_r8"):
         for ext in ("png", "pdf"):
             assert (out / f"{stem}.{ext}").stat().st_size > 1000, stem
+    # regenerated from the same runs: the same bytes (a PDF carries no creation date)
+    time.sleep(1.1)
+    again = report.build(root, tmp_path / "again")
+    assert sorted(again["figures"]) == sorted(res["figures"])
+    for name in res["figures"]:
+        assert (out / name).read_bytes() == (tmp_path / "again" / name).read_bytes(), name
     md = (out / "report.md").read_text()
     assert "learning-aid world" in md and "| ddpg |" in md and "train/ppo/seed1`: unfinished" in md
     assert "0.700 [0.203, 1.197]" in md and "torch | 2.13.0+cpu" in md
