@@ -212,6 +212,28 @@ def test_checkpoint_is_atomic_and_falls_back(tmp_path):
     assert state["counters"]["frames"] == 1 and file.name == PREV
 
 
+def _train_until_first_checkpoint_then_sigkill(run_dir: Path, args: list[str], poll_s: float, wandb_mode: str) -> None:
+    """``python -m uavlae.train run_dir=RUN_DIR ARGS`` in a child, killed with SIGKILL (a crash:
+    no handler runs) as soon as its first checkpoint exists; it must not have finished."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE=wandb_mode, WANDB_SILENT="true")
+    # wandb exports WANDB_SERVICE once this process has used it; a child given it would register
+    # its run with our service, which keeps the run "in use" after the SIGKILL, unlike a real crash
+    env.pop("WANDB_SERVICE", None)
+    cmd = [sys.executable, "-m", "uavlae.train", f"run_dir={run_dir}", *args]
+    proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    last = run_dir / "checkpoints" / LAST
+    deadline = time.monotonic() + 300
+    while not last.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(poll_s)
+    if proc.poll() is not None:
+        pytest.fail(f"training ended before its first checkpoint: {proc.stderr.read().decode()[-3000:]}")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+    proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (run_dir / "final_metrics.json").exists()
+
+
 RESUME = [
     "trainer.total_frames=384", "trainer.env_batch_size=4", "trainer.frames_per_batch=32",
     "trainer.init_random_frames=64", "trainer.batch_size=16", "trainer.utd_ratio=0.5",
@@ -227,23 +249,7 @@ def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path, exp):
     from uavlae.train import run
 
     run_dir = tmp_path / "killed"
-    env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true")
-    # wandb exports WANDB_SERVICE once this process has used it; a child given it would register
-    # its run with our service, which keeps the run "in use" after the SIGKILL, unlike a real crash
-    env.pop("WANDB_SERVICE", None)
-    cmd = [sys.executable, "-m", "uavlae.train", f"+exp={exp}", f"run_dir={run_dir}", *RESUME]
-    proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    last = run_dir / "checkpoints" / LAST
-    deadline = time.monotonic() + 300
-    while not last.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    if proc.poll() is not None:
-        pytest.fail(f"training ended before its first checkpoint: {proc.stderr.read().decode()[-3000:]}")
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(30)
-    proc.stderr.close()
-    assert proc.returncode == -signal.SIGKILL
-    assert not (run_dir / "final_metrics.json").exists()
+    _train_until_first_checkpoint_then_sigkill(run_dir, [f"+exp={exp}", *RESUME], poll_s=0.02, wandb_mode="offline")
     state, _ = load_checkpoint(run_dir)
     killed_at = state["counters"]["frames"]
     assert 0 < killed_at < 384
@@ -330,24 +336,11 @@ def test_sac_llm_resume_after_sigkill_replays_the_uninterrupted_run(tmp_path, lo
     assert summary["overlap_s"] > 0  # gradient steps ran while a request was in flight
 
     run_dir = tmp_path / "killed"
-    env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="disabled")
-    env.pop("WANDB_SERVICE", None)
-    cmd = [sys.executable, "-m", "uavlae.train", "+exp=sac_llm", f"run_dir={run_dir}", *LLM_RESUME, *llm,
-           "llm.cache_mode=replay_only"]
-    proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    last = run_dir / "checkpoints" / LAST
-    deadline = time.monotonic() + 300
-    while not last.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.005)
-    if proc.poll() is not None:
-        pytest.fail(f"training ended before its first checkpoint: {proc.stderr.read().decode()[-3000:]}")
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(30)
-    proc.stderr.close()
-    assert proc.returncode == -signal.SIGKILL
+    _train_until_first_checkpoint_then_sigkill(
+        run_dir, ["+exp=sac_llm", *LLM_RESUME, *llm, "llm.cache_mode=replay_only"], poll_s=0.005, wandb_mode="disabled")
     state, _ = load_checkpoint(run_dir)
     killed_at = state["counters"]["frames"]
-    assert 0 < killed_at < 160 and not (run_dir / "final_metrics.json").exists()
+    assert 0 < killed_at < 160
 
     # the saved config replays from the cache only: a request the first run did not make is an error
     resumed = run(_cfg(f"resume={run_dir}", "trainer.progress_bar=false", "logger.wandb.mode=disabled"))
