@@ -479,6 +479,29 @@ def test_config_differences_by_hand():
     assert config_differences({"a": {"b": 1}}, {"a": 1}) == (["a"], ["a.b"])
 
 
+def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(tmp_path, monkeypatch):
+    from uavlae import factories
+
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
+                       capture_output=True)
+
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "report.md").write_text("old\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "first")
+    monkeypatch.setattr(factories, "REPO_ROOT", tmp_path)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, capture_output=True, text=True).stdout.strip()
+    assert factories.git_info() == {"commit": head, "dirty": False}
+    (tmp_path / "results" / "report.md").write_text("regenerated\n")
+    (tmp_path / "notes.txt").write_text("untracked\n")
+    assert factories.git_info()["dirty"] is False
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert factories.git_info()["dirty"] is True
+
+
 def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):
     from uavlae.checkpoint import LAST, PREV, checkpoint_dir, load_checkpoint
     from uavlae.train import run

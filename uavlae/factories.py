@@ -336,7 +336,8 @@ def make_controller(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any = None
 
 
 def git_info() -> dict[str, Any]:
-    """The commit of the code that ran, and whether tracked files differed from it."""
+    """The commit of the code that ran, and whether tracked files differed from it. ``results/``
+    does not count: it holds outputs (a regenerated report), never code that runs."""
 
     def git(*args: str) -> str | None:
         try:
@@ -346,7 +347,7 @@ def git_info() -> dict[str, Any]:
         return out.stdout.strip() if out.returncode == 0 else None
 
     commit = git("rev-parse", "HEAD")
-    status = git("status", "--porcelain", "--untracked-files=no")
+    status = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
     return {"commit": commit, "dirty": bool(status) if status is not None else None}
 
 
