@@ -482,9 +482,9 @@ def test_config_differences_by_hand():
 def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(tmp_path, monkeypatch):
     from uavlae import factories
 
-    def git(*args: str) -> None:
-        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
-                       capture_output=True)
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
+                              capture_output=True, text=True).stdout.strip()
 
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "report.md").write_text("old\n")
@@ -493,8 +493,7 @@ def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(
     git("add", ".")
     git("commit", "-qm", "first")
     monkeypatch.setattr(factories, "REPO_ROOT", tmp_path)
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, capture_output=True, text=True).stdout.strip()
-    assert factories.git_info() == {"commit": head, "dirty": False}
+    assert factories.git_info() == {"commit": git("rev-parse", "HEAD"), "dirty": False}
     (tmp_path / "results" / "report.md").write_text("regenerated\n")
     (tmp_path / "notes.txt").write_text("untracked\n")
     assert factories.git_info()["dirty"] is False
