@@ -204,6 +204,14 @@ def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
     return out
 
 
+def _provenance(meta: dict[str, Any]) -> dict[str, Any]:
+    """What a run's ``meta.json`` says produced it: the commit (short), whether the code differed
+    from it, the package versions and the machine. Train and evaluation runs record it alike."""
+    git = meta.get("git") or {}
+    return {"commit": str(git.get("commit") or "")[:10], "dirty": git.get("dirty"),
+            "packages": meta.get("packages") or {}, "machine": machine_label(meta)}
+
+
 _PROGRESS_KEYS = ("eval/episodes_scored", "eval/episodes_total", "llm/calls", "llm/http_calls", "llm/fallbacks")
 
 
@@ -232,10 +240,8 @@ def _train_run(d: Path, partial: bool = False) -> Run:
         kind="train", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
         method=str(ex.get("method") or cfg.get("name")), seed=int(cfg.get("seed", 0)),
         metrics=_metrics_of(final, "eval/"), config=cfg, frames=frames, episodes=episodes,
-        updates=int(final.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
-        dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or shlex.join(meta.get("argv", []))),
-        packages=meta.get("packages") or {}, profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})),
-        machine=machine_label(meta),
+        updates=int(final.get("updates", 0)), command=str(meta.get("command") or shlex.join(meta.get("argv", []))),
+        profile=str(ex.get("profile") or ""), world=world_label(cfg.get("env", {})), **_provenance(meta),
         extra={"wall_s": final.get("wall_s", final.get("llm/wall_s")),
                # the LLM alone's progress and advisor counts, for llm_alone_rows
                **{key.split("/")[1]: int(final[key]) for key in _PROGRESS_KEYS if key in final},
@@ -276,9 +282,8 @@ def _eval_run(d: Path) -> Run:
         kind="eval", path=d, sweep=str(ex.get("sweep") or "none"), point=str(ex.get("point") or "default"),
         method=str(spec.get("method") or rec.get("name")), seed=int(spec.get("seed", 0)), metrics=metrics,
         config={"env": rec.get("env", {})}, frames=int(spec.get("frames", 0)), episodes=int(rec.get("episodes_trained", 0)),
-        updates=int(rec.get("updates", 0)), commit=str((meta.get("git") or {}).get("commit") or "")[:10],
-        dirty=(meta.get("git") or {}).get("dirty"), command=str(meta.get("command") or ""), packages=meta.get("packages") or {},
-        profile=str(ex.get("profile") or ""), world=world_label(rec.get("env", {})), machine=machine_label(meta),
+        updates=int(rec.get("updates", 0)), command=str(meta.get("command") or ""),
+        profile=str(ex.get("profile") or ""), world=world_label(rec.get("env", {})), **_provenance(meta),
         extra={"n_scenarios": rec.get("n_scenarios"), "wall_s": rec.get("wall_s")},
     )
 

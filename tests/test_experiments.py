@@ -416,6 +416,8 @@ def test_report_on_synthetic_runs(tmp_path):
     assert "Machine(s): Test CPU, 2 cores; not recorded for 6 of 21 runs" in md
     runs_csv = (out / "runs.csv").read_text()
     assert "python -m uavlae.train +exp=sac seed=0" in runs_csv and "abcdef1234" in runs_csv
+    # train and evaluation runs name their commit alike, cut to 10 characters
+    assert "abcdef1234," in runs_csv and "1234567890," in runs_csv and "abcdef12345" not in runs_csv
     assert final["sac"]["advisor_calls"] == "7"
 
     # more seeds and a new method, then aggregated again without touching the rest
