@@ -17,6 +17,22 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
 
+def config_data(cfg: Any) -> dict[str, Any]:
+    """User config as a plain dict: None is empty, a model is dumped, an OmegaConf node is resolved."""
+    if cfg is None:
+        return {}
+    if isinstance(cfg, BaseModel):
+        return cfg.model_dump()
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            cfg = OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return dict(cfg)
+
+
 def parse_model(model: type[M], cfg: Any, *, prefix: str, title: str, **overrides: Any) -> M:
     """Validate ``cfg`` (plus ``overrides``) into ``model``.
 
@@ -25,19 +41,7 @@ def parse_model(model: type[M], cfg: Any, *, prefix: str, title: str, **override
     """
     if isinstance(cfg, model) and not overrides:
         return cfg
-    if cfg is None:
-        data: dict[str, Any] = {}
-    elif isinstance(cfg, BaseModel):
-        data = cfg.model_dump()
-    else:
-        try:
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(cfg, DictConfig):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover
-            pass
-        data = dict(cfg)
+    data = config_data(cfg)
     data.update(overrides)
     try:
         return model.model_validate(data)

@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, model_validator
 
-from uavlae.validation import StrictModel
+from uavlae.validation import StrictModel, config_data, parse_model
 
 ResponseFormat = Literal["json_schema", "json_object", "grammar", "none"]
 CacheMode = Literal["off", "read_write", "replay_only"]
@@ -108,26 +108,14 @@ def make_llm_config(cfg: Any = None, **overrides: Any) -> LLMConfig:
     """
     if isinstance(cfg, LLMConfig) and not overrides:
         return cfg
-    if cfg is None:
-        data: dict[str, Any] = {}
-    elif isinstance(cfg, LLMConfig):
-        data = cfg.model_dump()
-    elif isinstance(cfg, (str, Path)):
+    if isinstance(cfg, (str, Path)):
         import yaml
 
         path = Path(cfg)
         if not path.suffix:
             path = CONF_DIR / f"{cfg}.yaml"
-        data = yaml.safe_load(path.read_text()) or {}
-    else:
-        try:
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(cfg, DictConfig):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover
-            pass
-        data = dict(cfg)
+        cfg = yaml.safe_load(path.read_text()) or {}
+    data = config_data(cfg)
     for key, value in overrides.items():  # "server.n_threads" style keys reach nested models
         node = data
         *parents, leaf = key.split(".")
@@ -136,11 +124,4 @@ def make_llm_config(cfg: Any = None, **overrides: Any) -> LLMConfig:
             if isinstance(node, BaseModel):
                 raise TypeError("nested overrides need a mapping config")
         node[leaf] = value
-    try:
-        return LLMConfig.model_validate(data)
-    except ValidationError as e:
-        lines = []
-        for err in e.errors():
-            loc = ".".join(str(p) for p in err["loc"]) or "llm"
-            lines.append(f"llm.{loc}: {err['msg']} (got {err.get('input')!r})")
-        raise ValueError("invalid LLM config:\n  " + "\n  ".join(lines)) from None
+    return parse_model(LLMConfig, data, prefix="llm", title="LLM")
