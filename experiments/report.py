@@ -355,8 +355,9 @@ def _write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
 
 
-def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    keys = list(dict.fromkeys(k for r in rows for k in r)) or ["empty"]
+def _write_csv(path: Path, rows: list[dict[str, Any]], fields: list[str] | None = None) -> None:
+    """``fields``: the columns a reader expects even when there is no row (else the rows' keys)."""
+    keys = list(dict.fromkeys(k for r in rows for k in r)) or fields or ["empty"]
     buf = io.StringIO(newline="")
     w = csv.DictWriter(buf, fieldnames=keys)
     w.writeheader()
@@ -640,7 +641,7 @@ def build(root: Path, out: Path) -> dict[str, Any]:
          "world": r.world, "commit": r.commit, "dirty": r.dirty, "path": str(r.path.relative_to(root)), "command": r.command}
         for r in sorted(runs, key=lambda r: (r.sweep, r.point, method_key(r.method), r.seed))
     ])
-    _write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped])
+    _write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped], ["path", "reason"])
     groups = group(runs)
     md: list[str] = []
 

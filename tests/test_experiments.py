@@ -258,6 +258,8 @@ def test_llm_axes_and_the_runs_beside_plain_sac_at_equal_frames(tmp_path):
     assert len(eq) == 7 and {r["setting"] for r in eq[1:]} >= {"llm_setting/d_th=15.0_prompt=none"}
     assert eq[0]["advisor_calls"] == "" and {r["advisor_calls"] for r in eq[1:]} == {"6 (10 rows, 5 cached)"}
     assert (tmp_path / "out" / "fig14_llm_setting_prompt.png").stat().st_size > 1000
+    # nothing skipped: the file keeps its columns for whoever reads it
+    assert (tmp_path / "out" / "skipped.csv").read_text().splitlines() == ["path,reason"]
 
 
 def _episodes(run_dir: Path, frames: int, dcr: list[float], landed: list[bool]) -> None:
