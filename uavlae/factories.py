@@ -68,6 +68,7 @@ class TrainerConfig(StrictModel):
     replay_capacity: int = Field(ge=1)
     batch_size: int = Field(ge=1)
     checkpoint_replay_buffer: bool
+    keep_replay_at_end: bool = False  # a finished run's checkpoint keeps the replay buffer too
     eval_every_frames: int = Field(ge=0)
     eval_episodes: int = Field(ge=1)
     eval_seed: int
@@ -81,6 +82,8 @@ class TrainerConfig(StrictModel):
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
     baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
+    eval_with_advisor: bool = True  # advised runs: at the end also fly the actor with its advisor (full trigger)
+    eval_advisor_max_calls: int | None = Field(default=None, ge=0)  # rows that evaluation may ask (None: no budget)
     eval_chunk: int | None = Field(default=None, ge=1)  # controller=llm: scenarios flown together (None: all)
     llm_call_budget: int | None = Field(default=None, ge=0)  # controller=llm: LLM decisions this invocation may ask (0: only score)
     eval_shards: int = Field(default=1, ge=1)  # controller=llm: processes that fly the evaluation side by side
@@ -102,17 +105,24 @@ class AdvisorConfig(StrictModel):
     """``conf/advisor``: who overrides the learner's action, and when (SPEC.md §8)."""
 
     mode: Literal["proximity", "fixed_prob", "always", "never"]
-    kind: Literal["none", "llm", "heuristic"]
+    # heuristic: the one of heuristic_kind; hover and random: scripted advisors of known, poor
+    # quality (beyond the paper), for measuring what advice is worth
+    kind: Literal["none", "llm", "heuristic", "hover", "random"]
     d_th: float = Field(ge=0)  # m
     fp: float = Field(ge=0, le=1)
     fallback: Literal["policy", "heuristic", "end_episode"]
     hold_steps: int = Field(1, ge=1)  # slots a valid answer is executed while its row stays triggered
     max_calls: int | None = Field(None, ge=0)  # rows asked of the advisor in the run; None: no budget
+    phase_out_frames: int | None = Field(None, ge=1)  # anneal d_th / fp to 0 over these frames; None: never
+    agree_tol: float = Field(0.1, gt=0)  # action units: the actor agrees with executed advice within this
 
     @model_validator(mode="after")
     def _consistent(self) -> "AdvisorConfig":
         if (self.kind == "none") != (self.mode == "never"):
             raise ValueError(f"advisor.kind={self.kind!r} and advisor.mode={self.mode!r}: kind none goes with mode never")
+        if self.phase_out_frames is not None and self.mode not in ("proximity", "fixed_prob"):
+            raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); "
+                             f"advisor.mode={self.mode!r} has neither")
         return self
 
 
@@ -203,6 +213,11 @@ def validate_config(cfg: DictConfig) -> None:
         if name not in MAKERS:
             raise ValueError(f"algo.name must be one of {sorted(MAKERS)}, got {name!r}")
         _algo_config(cfg.algo)
+        if float(cfg.algo.get("clone_weight", 0.0) or 0.0) > 0 and adv.kind == "none":
+            raise ValueError(
+                f"algo.clone_weight={cfg.algo.clone_weight} clones the executed advice, but advisor.kind is 'none': "
+                "there is none to clone (use +exp=sac_heuristic, sac_llm, ... or clone_weight=0)"
+            )
         if adv.kind != "none" and name not in OFF_POLICY:
             raise ValueError(
                 f"advisor.kind={adv.kind!r} with algo {name!r}: the override stores executed actions for an "
@@ -287,7 +302,7 @@ def make_llm_advisor(cfg: DictConfig) -> Any:
 def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | None = None) -> Any:
     """``conf/advisor`` -> the collection policy: ``actor`` alone, or wrapped by
     :class:`uavlae.policies.override.OverridePolicy` with an LLM or heuristic advisor."""
-    from uavlae.policies.override import HeuristicAdvisor, LLMAdvisorAdapter, OverridePolicy
+    from uavlae.policies.override import HeuristicAdvisor, LLMAdvisorAdapter, OverridePolicy, ScriptedAdvisor
 
     adv = make_advisor_config(cfg.advisor)
     if adv.kind == "none":
@@ -295,8 +310,11 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         return OverridePolicy(actor, None, mode="never", fallback="policy", seed=int(cfg.seed if seed is None else seed))
 
     heuristic = make_heuristic(cfg, env_cfg) if (adv.kind == "heuristic" or adv.fallback == "heuristic") else None
+    seed = int(cfg.seed if seed is None else seed)
     if adv.kind == "heuristic":
         advisor: Any = HeuristicAdvisor(heuristic)
+    elif adv.kind in ScriptedAdvisor.KINDS:
+        advisor = ScriptedAdvisor(adv.kind, seed=seed + 7919)  # its own stream, apart from the trigger's
     else:
         advisor = LLMAdvisorAdapter(make_llm_advisor(cfg), env_cfg)
     return OverridePolicy(
@@ -307,10 +325,12 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         fp=adv.fp,
         fallback=adv.fallback,
         heuristic=heuristic,
-        seed=int(cfg.seed if seed is None else seed),
+        seed=seed,
         hold_steps=adv.hold_steps,
         max_calls=adv.max_calls,
         perception_radius=env_cfg.safety.perception_radius,
+        phase_out_frames=adv.phase_out_frames,
+        agree_tol=adv.agree_tol,
     )
 
 

@@ -177,6 +177,7 @@ class OffPolicyUpdates:
         """The collector's ``between``: the gradient steps owed so far."""
         n = int(self.counters["utd_debt"])
         self.counters["utd_debt"] -= n
+        self.learner.anneal(self.counters["frames"])
         for _ in range(n):
             self.logs = self.learner.update(self.replay.sample())
         self.counters["updates"] += n
@@ -215,6 +216,19 @@ def _baselines(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, run_dir: Pat
         agg = evaluator.run(policy, run_dir / "eval" / f"baseline_{name}", title=name)
         out.update(_prefixed(f"baseline/{name}", agg))
     return out
+
+
+def _advised_evaluation(policy: Any, evaluator: Evaluator, run_dir: Path, tr: Any, name: str) -> dict[str, float]:
+    """The actor *with* its advisor on the same evaluation set as the actor alone: the
+    override at its full trigger (no phase-out), the actor deterministic, at most
+    ``trainer.eval_advisor_max_calls`` rows asked. Beside ``eval/``, this tells what the actor
+    owes to its advisor. Training state is untouched (``OverridePolicy.advised``)."""
+    with policy.advised(max_calls=tr.eval_advisor_max_calls):
+        agg = evaluator.run(policy, run_dir / "eval" / "with_advisor", title=f"{name} with its advisor")
+        counts = policy.counters()
+    keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
+            "advised", "budget_skipped", "frames")
+    return {**_prefixed("advised", agg), **_prefixed("advised/override", {k: counts[k] for k in keep})}
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
@@ -261,6 +275,14 @@ def format_summary(summary: dict[str, Any]) -> str:
             + (f" (max_calls={int(ov['max_calls'])})" if ov.get("max_calls", -1) >= 0 else "") + "; "
             f"{int(ov.get('source/fallback', 0)):,} failed answers."
         )
+        if ov.get("advised_fraction") is not None:
+            gap, agree = ov.get("actor_gap", float("nan")), ov.get("actor_agree", float("nan"))
+            lines.append(
+                f"  Dependence: {100 * ov['advised_fraction']:.1f}% of the stored transitions are the advisor's; "
+                f"where it acted, the actor's own action lay {gap:.2f} from it on average "
+                f"(within {ov.get('agree_tol', 0.1):g} in {100 * agree:.0f}% of rows)"
+                + (f"; trigger phased out to {ov['phase']:.2f} of d_th / fp" if ov.get("phase", 1.0) < 1.0 else "") + "."
+            )
         calls = ov.get("advisor/calls")
         if kind == "llm" and calls is not None:
             n = max(float(calls), 1.0)
@@ -297,6 +319,11 @@ def _pictures(run_dir: Path, frames: int) -> list[str]:
         if any(d.glob("trajectory_*.png")):
             out.append(str(d / "trajectory_*.png"))
     return out
+
+
+def _advised_row(final: dict[str, Any], name: str) -> dict[str, dict[str, float]]:
+    agg = {k.split("/", 1)[1]: v for k, v in final.items() if k.startswith("advised/") and k.count("/") == 1}
+    return {f"{name} (actor with its advisor)": agg} if agg else {}
 
 
 def _baseline_rows(final: dict[str, Any]) -> dict[str, dict[str, float]]:
@@ -481,18 +508,23 @@ def _train(
         last_eval = dict(ckpt.get("last_eval", {}))
         set_rng_state(ckpt["rng"])  # last: building the modules above drew from the global RNG
 
-    def checkpoint() -> Path:
+    def checkpoint(final: bool = False) -> Path:
+        # a finished run keeps its networks, not its buffer (gigabytes), unless asked to
+        keep_replay = tr.checkpoint_replay_buffer and (not final or tr.keep_replay_at_end)
         state = {
             "learner": learner.state_dict(),
             "collector": collector.state_dict(),
-            "replay_buffer": replay.state_dict() if (replay is not None and tr.checkpoint_replay_buffer) else None,
+            "replay_buffer": replay.state_dict() if (replay is not None and keep_replay) else None,
             "rng": rng_state(),
             "counters": dict(counters),
             "last_eval": dict(last_eval),
             "logger": logger.state_dict(),
             "config": _resolved(cfg),
         }
-        return save_checkpoint(state, run_dir, keep=tr.keep_checkpoints)
+        path = save_checkpoint(state, run_dir, keep=tr.keep_checkpoints)
+        if final and not keep_replay:
+            (path.parent / "prev.pt").unlink(missing_ok=True)  # the one before still holds a buffer
+        return path
 
     def evaluate(frames: int) -> dict[str, float]:
         out = train_eval_dir(run_dir, frames)
@@ -562,7 +594,7 @@ def _train(
             if frames >= counters["next_ckpt"] or finished:
                 every = tr.checkpoint_every_frames or tr.total_frames
                 counters["next_ckpt"] = (frames // every + 1) * every
-                checkpoint()
+                checkpoint(final=finished)
             bar.update(n_new)
             post = {"fps": f"{(frames - frames_start) / max(time.perf_counter() - t_start, 1e-9):.0f}"}
             post.update({k: f"{last_eval[k]:.3f}" for k in ("DCR", "CR", "SLR") if k in last_eval})
@@ -587,6 +619,8 @@ def _train(
     }
     if has_advisor:
         final.update(_prefixed("override", _deterministic_counts(policy.run_totals())))
+        if tr.eval_with_advisor:
+            final.update(_advised_evaluation(policy, evaluator, run_dir, tr, str(cfg.name)))
     t_base = time.perf_counter()
     if tr.baselines:
         final.update(_baselines(cfg, env_cfg, evaluator, run_dir))
@@ -599,7 +633,7 @@ def _train(
         "fps": counters["frames"] / train_s if train_s else None,
         "update_s": counters["update_s"], "overlap_s": counters["overlap_s"], "baselines_s": baselines_s,
         "eval_episodes": len(evaluator.scenarios),
-        "metrics": {f"{cfg.name} (trained actor)": last_eval, **_baseline_rows(final)},
+        "metrics": {f"{cfg.name} (trained actor)": last_eval, **_advised_row(final, str(cfg.name)), **_baseline_rows(final)},
         "advisor_kind": str(cfg.advisor.kind), "override": policy.run_totals() if has_advisor else None,
         "pictures": _pictures(run_dir, counters["frames"]),
     })

@@ -84,6 +84,10 @@ class DDPG:
     target_updater: SoftUpdate
     num_updates: int = 0
 
+    def anneal(self, frames: int) -> None:
+        """Schedules that follow training progress: none here (the exploration noise steps per
+        collected batch, ``noise.step``)."""
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""
         out = self.loss(batch)

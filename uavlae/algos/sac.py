@@ -12,6 +12,22 @@ The gradients come from ``SACLoss`` itself (``loss_impl: torchrl``: its forward,
 or, by default, from :class:`uavlae.algos.sac_fused.FusedSACGrad` (``loss_impl: fused``): the
 same losses and gradients of the same parameters, written out as plain tensor ops (its speed:
 docs/performance.md).
+
+Beyond the paper, off by default (``clone_weight: 0``): a cloning term toward the executed
+advice, so an advisor's skill reaches the actor and not only the critic. On the replayed rows
+whose ``action_source`` is an advisor's own answer (LLM, heuristic, student or scripted:
+``uavlae.policies.override.ADVICE_SOURCES``; never the actor's own rows nor a failed advisor's
+fallback), the actor's deterministic action ``tanh(loc)`` is pulled toward the replayed action
+by a squared error, averaged over the whole sample (rows without advice add 0)::
+
+    L_clone = w_t * mean_i m_i * ||tanh(loc_i) - a_i||^2
+
+A squared error on the mean stays finite at |a| = 1, where the override clamps and the
+heuristic often acts (a log-likelihood of a tanh-Gaussian would diverge there). ``w_t`` is
+``clone_weight``, decayed linearly to 0 over ``clone_decay_frames`` (null: constant) and, with
+``clone_scale: actor_loss``, multiplied by ``max(|loss_actor|, 1)`` of the same sample
+(detached): TD3+BC's normalisation (Fujimoto & Gu 2021) by the size of the Q term, so one weight
+means the same in worlds whose returns differ by orders of magnitude.
 """
 
 from __future__ import annotations
@@ -37,6 +53,7 @@ from uavlae.algos.common import (
 )
 from uavlae.algos.sac_fused import FusedSACGrad
 from uavlae.policies.networks import Activation, action_bounds, make_q_critic, make_sac_actor
+from uavlae.policies.override import ADVICE_SOURCES
 
 
 class SACConfig(StrictConfig):
@@ -60,6 +77,10 @@ class SACConfig(StrictConfig):
     # update stays faster (docs/performance.md).
     compile: bool = False
     compile_simdlen: int | None = Field(128, gt=0)  # inductor CPU vector bits; see compile_loss
+    # Beyond the paper (module doc): a cloning term toward the executed advice; 0: off.
+    clone_weight: float = Field(0.0, ge=0)
+    clone_decay_frames: int | None = Field(None, ge=1)  # linear decay of the weight to 0 (null: constant)
+    clone_scale: Literal["actor_loss", "none"] = "actor_loss"  # the weight times max(|loss_actor|, 1), or as is
     # Read by the collector / training loop, not by update():
     batch_size: int = Field(256, ge=1)  # Table 4
     buffer_size: int = Field(1_000_000, ge=1)
@@ -80,7 +101,7 @@ def make_sac_config(cfg: Any = None, **overrides: Any) -> SACConfig:
     return parse_config(SACConfig, cfg, **overrides)
 
 
-_LOG_KEYS = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
+_LOG_KEYS = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy", "loss_clone")
 _GROUPS = ("actor", "critic", "alpha")  # the Adam parameter groups, in this order
 
 
@@ -104,6 +125,7 @@ class SAC:
     optimisers: dict[str, torch.optim.Optimizer]  # {"sac": Adam with groups actor/critic/alpha}
     target_updater: SoftUpdate  # owns the source/target pairing and tau
     num_updates: int = 0
+    clone_now: float = 0.0  # the cloning weight at the current frame (anneal), before clone_scale
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
     _sources: list = field(default_factory=list, repr=False)
@@ -129,16 +151,38 @@ class SAC:
             groups = self.optimisers["sac"].param_groups
             if sorted(map(id, self._fused.params)) != sorted(id(p) for g in groups for p in g["params"]):
                 raise RuntimeError("the optimiser's parameters are not the loss's")  # make_sac bug
+        self.anneal(0)
 
-    def _step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+    def anneal(self, frames: int) -> None:
+        """The schedules that follow training progress: the cloning weight at ``frames``."""
+        w, decay = self.cfg.clone_weight, self.cfg.clone_decay_frames
+        self.clone_now = w if decay is None else w * max(0.0, 1.0 - frames / decay)
+
+    def _clone_mask(self, batch: TensorDictBase) -> torch.Tensor | None:
+        """Bool ``[N]``: the replayed rows an advisor acted on (None: cloning off now)."""
+        if self.clone_now <= 0:
+            return None
+        source = batch.get("action_source", None)
+        if source is None:
+            raise KeyError("algo.clone_weight > 0 needs 'action_source' in the replayed batch")
+        return torch.isin(source.reshape(-1), torch.tensor(ADVICE_SOURCES, device=source.device))
+
+    def _step(self, batch: TensorDictBase, mask: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        relative = self.cfg.clone_scale == "actor_loss"
         if self._fused is not None:
-            out, grads = self._fused.grads(batch)
+            out, grads = self._fused.grads(batch, self.clone_now, mask, relative)
             for p, g in zip(self._fused.params, grads):
                 p.grad = g
             norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
         else:
-            out = self._loss_fn(batch)
+            out = self._loss_fn(batch.select(*self._in_keys))
             total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+            loss_clone = torch.zeros(())
+            if mask is not None:
+                w = self.clone_now * (max(abs(float(out["loss_actor"].detach())), 1.0) if relative else 1.0)
+                loss_clone = clone_loss(self.actor, batch.get("observation"), batch.get("action"), mask, w)
+                total = total + loss_clone
+            out = {**out, "loss_clone": loss_clone}
             norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
         with torch.no_grad():
             # SoftUpdate: target <- target + tau (source - target)
@@ -150,9 +194,10 @@ class SAC:
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""
-        # A fixed set of keys: the loss writes "td_error" into its input, and a compiled loss
-        # would recompile on every new key structure. The caller's batch is left untouched.
-        out = self._step(batch if self._fused is not None else batch.select(*self._in_keys))
+        # A fixed set of keys for SACLoss (_step): the loss writes "td_error" into its input, and
+        # a compiled loss would recompile on every new key structure. The caller's batch is left
+        # untouched.
+        out = self._step(batch, self._clone_mask(batch))
         self.num_updates += 1
         logs = to_floats(out)
         logs["num_updates"] = float(self.num_updates)
@@ -173,6 +218,20 @@ class SAC:
         if set(state["optimisers"]) == set(_GROUPS):  # written before the optimisers were merged
             state = {**state, "optimisers": {"sac": _merge_adam_states(state["optimisers"])}}
         self.num_updates = load_parts_state_dict(self._parts(), state)
+
+
+def clone_loss(actor: ProbabilisticActor, obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor,
+               weight: float) -> torch.Tensor:
+    """``weight * mean_i mask_i ||det_i - action_i||^2`` through autograd, ``det`` the actor's
+    deterministic action (``tanh(loc)`` mapped onto its action box): the module doc's cloning
+    term, and the reference for the fused gradient."""
+    from tensordict import TensorDict
+
+    loc = actor.get_dist_params(TensorDict({"observation": obs}, batch_size=obs.shape[:1])).get("loc")
+    box = actor.spec["action"].space
+    det = loc.tanh() * (box.high - box.low) / 2 + (box.high + box.low) / 2  # the deterministic action
+    diff = (det - action) * mask.reshape(-1, 1).to(loc.dtype)
+    return weight * diff.square().sum(-1).mean()
 
 
 def _merge_adam_states(states: dict[str, Any]) -> dict[str, Any]:

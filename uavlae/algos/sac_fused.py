@@ -30,6 +30,11 @@ no autograd:
 Supported: what ``make_sac`` builds (MLP actor and critics of any depth, relu / tanh / elu /
 silu, ``TanhNormal`` on a box, l2 / l1 / smooth-l1 critic loss, TD(0) targets, SAC v2, no
 prioritised weights, no alpha bounds).
+
+With a cloning weight (``clone_weight > 0``, beyond the paper: :mod:`uavlae.algos.sac`), the
+actor's gradient also carries the cloning term toward the executed advice,
+``w * mean_i m_i * ||tanh(loc_i) - a_i||^2`` (``m_i`` 1 on the rows an advisor acted on), written
+out the same way: ``d/dloc = 2 w m (tanh(loc) - a) (1 - tanh(loc)^2) / N``.
 """
 
 from __future__ import annotations
@@ -160,7 +165,7 @@ class FusedSACGrad:
         if self.box is not None:
             action = y * self.box[1] + self.box[0]
             log_prob = log_prob - self.box[1].log().sum()
-        return {"action": action, "log_prob": log_prob, "x": x, "y": y, "eps": eps, "raw": raw,
+        return {"action": action, "log_prob": log_prob, "x": x, "y": y, "eps": eps, "raw": raw, "loc": loc,
                 "scale": scale, "pre_scale": pre_scale, "inputs": inputs, "pre": pre}  # fmt: skip
 
     def _q_first(self, obs: torch.Tensor, layers: Layers) -> torch.Tensor:
@@ -197,17 +202,25 @@ class FusedSACGrad:
             g = self.act_grad(g, pre[i - 1], x)
         return grads, g
 
-    def grads(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    def grads(
+        self, batch: TensorDictBase, clone_weight: float = 0.0, clone_mask: torch.Tensor | None = None,
+        clone_relative: bool = False,
+    ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+        """``clone_weight`` and ``clone_mask`` ``[N]`` (bool: the rows whose replayed action
+        the actor is pulled toward): the cloning term, see the module doc. ``clone_relative``:
+        the weight is multiplied by ``max(|loss_actor|, 1)`` (detached), as
+        :func:`uavlae.algos.sac.clone_weight_now` does for the torchrl path."""
         nxt = batch.get("next")
         obs, act = batch.get("observation"), batch.get("action")
         next_obs = nxt.get("observation")
         reward = nxt.get("reward").reshape(-1)
         not_term = (~nxt.get("terminated")).reshape(-1)
         with torch.no_grad():
-            return self._grads(obs, act, next_obs, reward, not_term)
+            return self._grads(obs, act, next_obs, reward, not_term, clone_weight, clone_mask, clone_relative)
 
     def _grads(
-        self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor, not_term: torch.Tensor
+        self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor, not_term: torch.Tensor,
+        clone_weight: float = 0.0, clone_mask: torch.Tensor | None = None, clone_relative: bool = False,
     ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
         n_obs = obs.shape[0]
         inv_n = 1.0 / n_obs
@@ -259,7 +272,20 @@ class FusedSACGrad:
         g_x = g_act * (1 - y * y) + g_lp * (2.0 - 4.0 * torch.sigmoid(-2.0 * x))
         g_scale = (g_x * cur["eps"] - g_lp / scale) * (cur["pre_scale"] >= self.scale_lb)
         g_raw = g_scale * torch.sigmoid(cur["raw"] + self.scale_bias)
-        g = torch.cat([g_x, g_raw], dim=1)
+        g_loc = g_x  # x = loc + eps * scale
+        loss_clone = torch.zeros((), dtype=obs.dtype)
+        if clone_weight > 0 and clone_mask is not None:
+            if clone_relative:
+                clone_weight = clone_weight * max(abs(float(loss_actor)), 1.0)
+            t = cur["loc"].tanh()
+            det = t if self.box is None else t * self.box[1] + self.box[0]
+            diff = (det - act) * clone_mask.reshape(-1, 1).to(det.dtype)
+            loss_clone = clone_weight * diff.square().sum(-1).mean()
+            g_det = diff * (2.0 * clone_weight * inv_n)
+            if self.box is not None:
+                g_det = g_det * self.box[1]
+            g_loc = g_x + g_det * (1 - t * t)
+        g = torch.cat([g_loc, g_raw], dim=1)
         a_grads: list[tuple[torch.Tensor, torch.Tensor]] = []  # (weight, bias), last layer first
         inputs, pre = cur["inputs"], cur["pre"]
         for i in range(len(self.actor_layers) - 1, -1, -1):
@@ -278,5 +304,6 @@ class FusedSACGrad:
             "loss_alpha": loss_alpha,
             "alpha": alpha,
             "entropy": -logp.mean(),
+            "loss_clone": loss_clone,
         }
         return logs, grads

@@ -12,7 +12,13 @@ POLICY    0      the wrapped actor acted (not triggered, or override off)
 LLM       1      the LLM advisor's validated velocity was executed
 HEURISTIC 2      the heuristic advisor's action was executed
 FALLBACK  3      triggered, the advisor failed, the fallback setting acted
+STUDENT   4      a network trained on the LLM's answers answered in its place
+SCRIPTED  5      a scripted advisor of known quality (hover, uniform random)
 ========  =====  ===========================================================
+
+:data:`ADVICE_SOURCES` (LLM, HEURISTIC, STUDENT, SCRIPTED) are the rows where an advisor's own
+answer was executed: what the advised fraction counts and what a cloning term learns from.
+FALLBACK rows are not advice (the advisor failed), POLICY rows are the actor's.
 
 Triggers (``mode``): ``"proximity"`` (paper: any BZ, NFZ, RZ or OU within ``d_th`` of the
 DCU, read from the env's ``("state", "d_bz" | "d_nfz" | "d_rz" | "d_ou")``; an OU counts only
@@ -33,15 +39,29 @@ where ``td_rows`` is the tensordict of the triggered rows only (with its ``("sta
 entries) and ``rows`` their indices in the batch. An advisor may expose ``source`` (the
 ``action_source`` value of its successful actions, default LLM), ``fallback`` (its own
 configured fallback, used when the policy's ``fallback`` is None), ``snapshot()`` (counters),
-``close()``, and ``start(td_rows, rows)``: the same request sent without waiting, returning a
+``close()``, ``start(td_rows, rows)``: the same request sent without waiting, returning a
 handle whose ``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on
-the server while the caller works).
+the server while the caller works), and ``observe(td)``: called with the whole batch at every
+step the override is on, before any row is asked, by an advisor whose answers depend on what it
+remembers of earlier slots (the heuristics): it then keeps that memory per env row, however the
+set of triggered rows changes from slot to slot.
 
 A step in two halves: :meth:`OverridePolicy.begin` decides the triggered rows from the state
 alone and starts their advice; :meth:`OverridePolicy.finish` runs the actor, waits for the
 answers and merges them. ``forward`` is ``finish(begin(td))``; the collector runs the learner's
 scheduled gradient steps between the two, while the requests are in flight. Neither half reads
 the actor's parameters before ``finish``, so what runs in between cannot change the answers.
+
+Advisor phase-out, beyond the paper (off by default): ``phase_out_frames = F`` anneals the
+trigger linearly to nothing over the first ``F`` frames the override acts on (``d_th`` in
+proximity mode, ``fp`` in fixed-probability mode, scaled by ``1 - frames / F``; from ``F`` on
+no row is triggered), so the actor flies alone before training ends.
+
+Dependence, counted every step the override is on: the advised fraction (advice executed /
+frames), the trigger rate and, on the rows where advice was executed, the gap between the
+advice and the actor's own deterministic action there (``tanh`` of its ``"loc"`` when the actor
+writes one, else its action): ``actor_gap`` (mean L2 distance, action units) and
+``actor_agree`` (the fraction within ``agree_tol`` of it).
 
 Fewer calls, beyond the paper (both off by default, both counted in :meth:`snapshot`):
 
@@ -80,8 +100,10 @@ from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-POLICY, LLM, HEURISTIC, FALLBACK = 0, 1, 2, 3
-SOURCE_NAMES = {POLICY: "policy", LLM: "llm", HEURISTIC: "heuristic", FALLBACK: "fallback"}
+POLICY, LLM, HEURISTIC, FALLBACK, STUDENT, SCRIPTED = 0, 1, 2, 3, 4, 5
+SOURCE_NAMES = {POLICY: "policy", LLM: "llm", HEURISTIC: "heuristic", FALLBACK: "fallback", STUDENT: "student",
+                SCRIPTED: "scripted"}
+ADVICE_SOURCES = (LLM, HEURISTIC, STUDENT, SCRIPTED)  # an advisor's own answer was executed
 MODES = ("proximity", "fixed_prob", "always", "never")
 FALLBACKS = ("policy", "heuristic", "end_episode")
 # the env's distances to the nearest obstacle of each kind (docs/env_contract.md)
@@ -92,8 +114,8 @@ ADVISOR_COUNTS = ("requests", "calls", "cache_hits", "retries", "ask_again", "ad
                   "prompt_tokens", "completion_tokens", "rows_advised")
 
 __all__ = [
-    "Advisor", "FALLBACK", "HEURISTIC", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter", "OverridePolicy",
-    "POLICY", "Pending", "SOURCE_NAMES",
+    "ADVICE_SOURCES", "Advisor", "FALLBACK", "HEURISTIC", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter",
+    "OverridePolicy", "POLICY", "Pending", "SCRIPTED", "SOURCE_NAMES", "STUDENT", "ScriptedAdvisor",
 ]
 
 
@@ -135,14 +157,19 @@ class Pending:
 
 
 class HeuristicAdvisor:
-    """The greedy controller as an advisor (SAC+Heuristic); it never fails.
+    """The greedy controller (or the planner) as an advisor (SAC+Heuristic); it never fails.
 
     Args:
-        heuristic: a :class:`uavlae.policies.heuristic.HeuristicPolicy`.
+        heuristic: a :class:`uavlae.policies.greedy.GreedyPolicy` or
+            :class:`uavlae.policies.heuristic.HeuristicPolicy`.
 
-    [decision] The heuristic sees only the triggered rows, like the LLM. Its per-row plan and
-    graph caches assume a fixed batch, so with changing row sets it replans those rows each
-    call: correct, a little slower than acting on the whole batch.
+    The heuristics remember earlier slots (target, detour side, stall counter, homing latch; the
+    planner's plans). Under the override the triggered rows change from slot to slot, so the
+    advisor follows every row: :meth:`observe` steps the heuristic on the whole batch at every
+    step the override is on, and :meth:`advise` answers the asked rows from that step. Each
+    row's answer is then the one the heuristic would give flying that env row every slot, as it
+    does when flown alone: the advisor is the baseline it is compared with. Called without
+    :meth:`observe` (a direct call), it acts on the given rows alone.
     """
 
     source = HEURISTIC
@@ -151,11 +178,16 @@ class HeuristicAdvisor:
         self.heuristic = heuristic
         self.calls = 0
         self.rows_advised = 0
+        self._step: Tensor | None = None  # this step's action of every row, from observe()
+
+    def observe(self, td: TensorDictBase) -> None:
+        self._step = self.heuristic.act(td.get("state"))
 
     def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
         self.calls += 1
         self.rows_advised += int(rows.numel())
-        action = self.heuristic.act(td_rows.get("state"))
+        step, self._step = self._step, None
+        action = step[rows.to(step.device)] if step is not None else self.heuristic.act(td_rows.get("state"))
         return action, torch.ones(action.shape[0], dtype=torch.bool, device=action.device)
 
     def snapshot(self, reset: bool = False) -> dict[str, float]:
@@ -165,11 +197,56 @@ class HeuristicAdvisor:
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        """The heuristic's plan and graph caches and the counters (checkpoints: exact resume)."""
+        """The heuristic's memory and the counters (checkpoints: exact resume)."""
         return {"cache": self.heuristic.cache_state(), "calls": self.calls, "rows_advised": self.rows_advised}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.heuristic.load_cache_state(state["cache"])
+        self.calls, self.rows_advised = int(state["calls"]), int(state["rows_advised"])
+
+
+class ScriptedAdvisor:
+    """Advisors of known, poor quality, for measuring what advice is worth (beyond the paper):
+    ``"hover"`` answers a zero velocity (the DCU stays where it is), ``"random"`` a uniform
+    action in [-1, 1]^2 from its own seeded generator (checkpointed). Neither ever fails.
+
+    Args:
+        kind: ``"hover"`` | ``"random"``.
+        seed: seeds ``"random"``'s generator.
+    """
+
+    source = SCRIPTED
+    KINDS = ("hover", "random")
+
+    def __init__(self, kind: str, seed: int = 0):
+        if kind not in self.KINDS:
+            raise ValueError(f"a scripted advisor is one of {list(self.KINDS)}, got {kind!r}")
+        self.kind = kind
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self.calls = 0
+        self.rows_advised = 0
+
+    def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
+        self.calls += 1
+        n = int(rows.numel())
+        self.rows_advised += n
+        if self.kind == "hover":
+            action = torch.zeros(n, 2)
+        else:
+            action = torch.rand(n, 2, generator=self.generator) * 2.0 - 1.0
+        return action, torch.ones(n, dtype=torch.bool)
+
+    def snapshot(self, reset: bool = False) -> dict[str, float]:
+        out = {"calls": self.calls, "rows_advised": self.rows_advised}
+        if reset:
+            self.calls = self.rows_advised = 0
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state(), "calls": self.calls, "rows_advised": self.rows_advised}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
         self.calls, self.rows_advised = int(state["calls"]), int(state["rows_advised"])
 
 
@@ -291,6 +368,9 @@ class OverridePolicy(TensorDictModuleBase):
         max_calls: rows the advisor may be asked in the run (None: no budget).
         perception_radius: OUs farther than this (m) do not trigger (the env's ``d_ou``
             counts every OU; the DCU sees only those within its perception radius).
+        phase_out_frames: anneal the trigger to nothing over this many frames (None: never).
+        agree_tol: the distance (action units) within which the actor counts as agreeing
+            with the executed advice.
     """
 
     out_keys = ["action", "action_source", "override_abort"]
@@ -308,6 +388,8 @@ class OverridePolicy(TensorDictModuleBase):
         hold_steps: int = 1,
         max_calls: int | None = None,
         perception_radius: float = math.inf,
+        phase_out_frames: int | None = None,
+        agree_tol: float = 0.1,
     ):
         super().__init__()
         if mode not in MODES:
@@ -328,6 +410,13 @@ class OverridePolicy(TensorDictModuleBase):
             raise ValueError(f"advisor.hold_steps must be an integer >= 1 (1: ask every slot), got {hold_steps!r}")
         if max_calls is not None and (isinstance(max_calls, bool) or int(max_calls) != max_calls or max_calls < 0):
             raise ValueError(f"advisor.max_calls must be null (no budget) or an integer >= 0, got {max_calls!r}")
+        if phase_out_frames is not None:
+            if isinstance(phase_out_frames, bool) or int(phase_out_frames) != phase_out_frames or phase_out_frames < 1:
+                raise ValueError(f"advisor.phase_out_frames must be null (never) or an integer >= 1, got {phase_out_frames!r}")
+            if mode not in ("proximity", "fixed_prob"):
+                raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); mode {mode!r} has neither")
+        if not agree_tol > 0:
+            raise ValueError(f"advisor.agree_tol must be > 0 (action units), got {agree_tol!r}")
         self.actor = actor
         # plain attributes, not submodules: never in state_dict, never moved by .to()
         self.__dict__["advisor"] = advisor
@@ -342,11 +431,14 @@ class OverridePolicy(TensorDictModuleBase):
         self.calls_used = 0  # rows sent to the advisor in the run (max_calls)
         self.hold: dict[str, Tensor] | None = None  # per row: action, source, slots left, last step
         self.perception_radius = float(perception_radius)
+        self.phase_out_frames = None if phase_out_frames is None else int(phase_out_frames)
+        self.agree_tol = float(agree_tol)
         self.deterministic = False  # evaluation / deployment: actor alone, deterministic
         # bool [B]: the rows that may be triggered at all (None: every row); the LLM-alone
         # evaluation clears a row once its episode has ended, so it is never asked again
         self.row_mask: Tensor | None = None
         self._active_actor: Any = None  # set by using_actor() (random warm-up frames)
+        self._full_trigger = False  # set by advised(): the paper's trigger, no phase-out
         self.generator = torch.Generator()
         self.generator.manual_seed(self.seed)
         in_keys = list(getattr(actor, "in_keys", ["observation"]))
@@ -374,6 +466,25 @@ class OverridePolicy(TensorDictModuleBase):
             self.deterministic = prev
 
     @contextlib.contextmanager
+    def advised(self, max_calls: int | None = None) -> Iterator["OverridePolicy"]:
+        """Evaluation of the actor *with* its advisor: the override on at its full trigger (no
+        phase-out), at most ``max_calls`` rows asked (None: no budget), the actor acting
+        deterministically under the evaluator's exploration type. What it counts is
+        :meth:`snapshot`'s inside the block; on leaving, the training state (counters, budget,
+        held answers, the advisor's memory and generators) is put back as it was, so training
+        continues exactly."""
+        saved = self.get_extra_state()
+        saved_max, prev_det = self.max_calls, self.deterministic
+        self.deterministic, self._full_trigger = False, True
+        self.max_calls, self.calls_used, self.hold = max_calls, 0, None
+        self.reset_counters()
+        try:
+            yield self
+        finally:
+            self.max_calls, self.deterministic, self._full_trigger = saved_max, prev_det, False
+            self.set_extra_state(saved)
+
+    @contextlib.contextmanager
     def using_actor(self, actor: Any) -> Iterator["OverridePolicy"]:
         """Act with ``actor`` in place of the wrapped one (e.g. random warm-up), override kept."""
         prev, self._active_actor = self._active_actor, actor
@@ -387,19 +498,29 @@ class OverridePolicy(TensorDictModuleBase):
         """Bool ``[B]``: the rows whose action the advisor gives this step."""
         B = td.batch_size[0]
         device = td.get("action").device if "action" in td.keys() else td.device
-        if not self.override_active:
+        scale = self.phase()
+        if not self.override_active or scale <= 0.0:
+            if self.mode == "fixed_prob" and self.override_active:
+                torch.rand(B, generator=self.generator)  # the same draws whatever the schedule
             return torch.zeros(B, dtype=torch.bool, device=device)
         if self.mode == "always":
             trig = torch.ones(B, dtype=torch.bool, device=device)
         elif self.mode == "fixed_prob":
             u = torch.rand(B, generator=self.generator)
-            trig = (u < self.fp).to(device)
+            trig = (u < self.fp * scale).to(device)
         else:  # "proximity": SPEC §8, any BZ, NFZ, RZ or OU within d_th (inf when none is present)
             d = torch.stack([td.get(k).reshape(B) for k in PROXIMITY_KEYS], dim=-1)
             d_ou = d[:, -1]  # PROXIMITY_KEYS ends with d_ou
             d = torch.cat([d[:, :-1], d_ou.masked_fill(d_ou > self.perception_radius, math.inf)[:, None]], -1).amin(-1)
-            trig = (d <= self.d_th).to(device)
+            trig = (d <= self.d_th * scale).to(device)
         return trig if self.row_mask is None else trig & self.row_mask.to(device)
+
+    def phase(self) -> float:
+        """The phase-out's scale on ``d_th`` / ``fp`` now: ``1 - frames / phase_out_frames``
+        over the frames the override has acted on, floored at 0 (1 without a phase-out)."""
+        if self.phase_out_frames is None or self._full_trigger:
+            return 1.0
+        return max(0.0, 1.0 - self.totals["frames"] / self.phase_out_frames)
 
     # ------------------------------------------------------------------ acting
     def _act(self, td: TensorDictBase) -> TensorDictBase:
@@ -417,6 +538,10 @@ class OverridePolicy(TensorDictModuleBase):
     def begin(self, td: TensorDictBase) -> Pending:
         """The first half of a step: the triggered rows (from the state alone) and their advice,
         sent; held answers and the call budget decide which rows are asked."""
+        observe = getattr(self.advisor, "observe", None)
+        if observe is not None and self.override_active:
+            with torch.no_grad():
+                observe(td)  # a stateful advisor follows every row, every slot
         trig = self.trigger(td)
         B = trig.shape[0]
         none = torch.zeros(B, dtype=torch.bool, device=trig.device)
@@ -445,6 +570,7 @@ class OverridePolicy(TensorDictModuleBase):
         """The second half: the actor acts, the answers are awaited and merged."""
         td = self._act(td)
         action = td.get("action")
+        own = action  # the actor's own action, before any advice replaces it
         B = td.batch_size[0]
         source = torch.zeros(B, dtype=torch.int64, device=action.device)
         abort = torch.zeros(B, dtype=torch.bool, device=action.device)
@@ -487,7 +613,25 @@ class OverridePolicy(TensorDictModuleBase):
         td.set("override_abort", abort)
         if self.override_active:
             self._count(source, trig, abort, held, pending.skipped, int(rows.numel()), wait)
+            self._count_agreement(td, own, action, source)
         return td
+
+    def _count_agreement(self, td: TensorDictBase, own: Tensor, action: Tensor, source: Tensor) -> None:
+        """How far the actor's own deterministic action lies from the advice executed in its
+        place (skipped during the random warm-up, when the actor does not act)."""
+        if self._active_actor is not None:
+            return
+        advised = torch.isin(source, torch.tensor(ADVICE_SOURCES, device=source.device))
+        n = int(advised.sum())
+        if not n:
+            return
+        loc = td.get("loc", None)
+        mine = loc.tanh() if loc is not None and loc.shape == own.shape else own
+        gap = torch.linalg.vector_norm(mine[advised].float() - action[advised].float(), dim=-1)
+        add = {"gap_rows": n, "gap_sum": float(gap.sum()), "agree_rows": int((gap <= self.agree_tol).sum())}
+        for c in (self.counts, self.totals):
+            for k, v in add.items():
+                c[k] = c.get(k, 0) + v
 
     # ------------------------------------------------------------------ held answers
     def _hold_state(self, B: int, device: torch.device) -> dict[str, Tensor]:
@@ -514,7 +658,7 @@ class OverridePolicy(TensorDictModuleBase):
     # ------------------------------------------------------------------ counters
     def reset_counters(self) -> None:
         self.counts = {"frames": 0, "triggered": 0, "aborts": 0, "held": 0, "budget_skipped": 0,
-                       "advised": 0, "advice_wait_s": 0.0,
+                       "advised": 0, "advice_wait_s": 0.0, "gap_rows": 0, "gap_sum": 0.0, "agree_rows": 0,
                        **{f"source/{n}": 0 for n in SOURCE_NAMES.values()}}
 
     def _count(self, source: Tensor, trig: Tensor, abort: Tensor, held: Tensor, skipped: Tensor, advised: int,
@@ -532,8 +676,13 @@ class OverridePolicy(TensorDictModuleBase):
         frames, trig = c["frames"], c["triggered"]
         nan = float("nan")
         c["trigger_rate"] = trig / frames if frames else nan
-        c["override_rate"] = (c["source/llm"] + c["source/heuristic"]) / frames if frames else nan
+        advice = sum(c.get(f"source/{SOURCE_NAMES[k]}", 0) for k in ADVICE_SOURCES)
+        c["override_rate"] = advice / frames if frames else nan  # the advised fraction of these frames
+        c["advised_fraction"] = c["override_rate"]
         c["advice_fail_rate"] = c["source/fallback"] / trig if trig else nan
+        gap_rows = c.get("gap_rows", 0)
+        c["actor_gap"] = c.get("gap_sum", 0.0) / gap_rows if gap_rows else nan
+        c["actor_agree"] = c.get("agree_rows", 0) / gap_rows if gap_rows else nan
         return c
 
     def snapshot(self, reset: bool = False) -> dict[str, float]:
@@ -550,6 +699,8 @@ class OverridePolicy(TensorDictModuleBase):
         c["calls_used"] = self.calls_used
         c["max_calls"] = -1 if self.max_calls is None else self.max_calls
         c["hold_steps"] = self.hold_steps
+        c["phase"] = self.phase()
+        c["agree_tol"] = self.agree_tol
         snap = getattr(self.advisor, "snapshot", None)
         if snap is not None:
             adv = snap(reset=reset)
@@ -561,6 +712,11 @@ class OverridePolicy(TensorDictModuleBase):
             self.reset_counters()
         return c
 
+    def counters(self) -> dict[str, Any]:
+        """The override's own counters since the last reset, with their rates (no advisor
+        transport counters): what an evaluation inside :meth:`advised` reads."""
+        return self._rates(dict(self.counts))
+
     def run_totals(self) -> dict[str, Any]:
         """The run's counters (never reset, checkpointed): :meth:`snapshot`'s names, the
         advisor's counts summed over the whole run and, for an LLM advisor, its per-call
@@ -569,6 +725,8 @@ class OverridePolicy(TensorDictModuleBase):
         c["calls_used"] = self.calls_used
         c["max_calls"] = -1 if self.max_calls is None else self.max_calls
         c["hold_steps"] = self.hold_steps
+        c["phase"] = self.phase()
+        c["agree_tol"] = self.agree_tol
         snap = getattr(self.advisor, "snapshot", None)
         if snap is not None:
             window = snap(reset=False)
