@@ -351,3 +351,59 @@ bench-sac-llm: $(STAMP)
 .PHONY: bench-trigger
 bench-trigger: $(STAMP)
 	$(BIN)/python benchmarks/trigger_rate.py
+
+# ---------------------------------------------------------------------------- the advice study
+# Does an advisor that takes over near obstacles make SAC better, and what must it know?
+# (experiments/README.md, "Does advice teach?"). SAC with advisors of known quality (none, the
+# paper's greedy heuristic, the planner, hovering, uniform random, the local LLM), in the
+# learning-aid world (400k frames) and SPEC's (1M), under the paper's override and under teach
+# (override + a cloning term + a phase-out of the trigger). Every stage is a resumable sweep
+# (finished runs are kept, killed ones resume from their checkpoint): run the same command again.
+# The cloning weight is tuned on seeds apart from the verdict seeds (ADVICE_TUNE_SEEDS), then
+# read back by `experiments.advice choose`. ADVICE_JOBS: runs side by side (one per core).
+ADVICE_ROOT ?= runs/advice
+ADVICE_JOBS ?= 1
+ADVICE_SEEDS ?= 0,1,2,3,4
+ADVICE_FEW_SEEDS ?= 0,1,2
+ADVICE_TUNE_SEEDS ?= 100,101
+ADVICE_TUNE_WEIGHTS ?= 0.1,0.4,1.6
+ADVICE_LLM_CALLS ?= 3000
+ADVICE_LLM_EVAL_CALLS ?= 500
+ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_ROOT) hydra/launcher=local \
+	hydra.launcher.n_jobs=$(ADVICE_JOBS)
+ADVICE_AID = env=shaped_geodesic trainer.total_frames=400000
+ADVICE_SPEC = env=default trainer.total_frames=1000000
+# teach: the trigger phased out over the first half of training, the cloning weight decayed to 0 by its end
+TEACH_AID = algo.clone_decay_frames=400000 advisor.phase_out_frames=200000
+TEACH_SPEC = algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
+ADVICE_CLONE = algo.clone_weight=$$($(BIN)/python -m experiments.advice choose $(ADVICE_ROOT))
+.PHONY: advice-study advice-tune advice-aid advice-spec advice-llm advice-records advice-report
+advice-study: advice-tune advice-aid advice-spec advice-llm advice-records advice-report
+advice-tune: $(STAMP)
+	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) experiment.point=aid_tune +exp=sac_heuristic seed=$(ADVICE_TUNE_SEEDS) \
+		algo.clone_weight=$(ADVICE_TUNE_WEIGHTS) 'experiment.method=sac_heuristic_w$${algo.clone_weight}'
+advice-aid: $(STAMP)
+	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac,sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
+	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach \
+		+exp=sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
+	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach \
+		+exp=sac_hover,sac_random_advice seed=$(ADVICE_FEW_SEEDS)
+advice-spec: $(STAMP)
+	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_override +exp=sac,sac_heuristic seed=$(ADVICE_FEW_SEEDS)
+	$(ADVICE) $(ADVICE_SPEC) $(TEACH_SPEC) $(ADVICE_CLONE) experiment.point=spec_teach +exp=sac_heuristic \
+		seed=$(ADVICE_FEW_SEEDS)
+	# each learning aid alone in SPEC's world: ego-centric columns only, the progress reward only
+	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_aid +exp=sac seed=$(ADVICE_FEW_SEEDS) env=shaped_geodesic \
+		env.reward.progress_weight=0.0 experiment.method=sac_ego_only
+	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_aid +exp=sac seed=$(ADVICE_FEW_SEEDS) env=shaped_geodesic \
+		env.ego_features=false experiment.method=sac_progress_only
+# the local LLM at the budget it affords here (advisor.max_calls rows a run; the report gives the advised fraction)
+advice-llm: $(STAMP)
+	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac_llm seed=$(ADVICE_FEW_SEEDS) \
+		advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
+	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach +exp=sac_llm \
+		seed=$(ADVICE_FEW_SEEDS) advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
+advice-records: $(STAMP)
+	$(BIN)/python -m experiments.advice records $(ADVICE_ROOT) --out results/advice
+advice-report: $(STAMP)
+	$(BIN)/python -m experiments.advice report results/advice
