@@ -371,12 +371,14 @@ ADVICE_LLM_CALLS ?= 3000
 ADVICE_LLM_EVAL_CALLS ?= 500
 ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_ROOT) hydra/launcher=local \
 	hydra.launcher.n_jobs=$(ADVICE_JOBS)
-ADVICE_AID = env=shaped_geodesic trainer.total_frames=400000
-ADVICE_SPEC = env=default trainer.total_frames=1000000
+# the replay buffer holds every frame of a run either way; sized to the run, its checkpoints are smaller
+ADVICE_AID = env=shaped_geodesic trainer.total_frames=400000 trainer.replay_capacity=400000
+ADVICE_SPEC = env=default trainer.total_frames=1000000 trainer.replay_capacity=1000000
 # teach: the trigger phased out over the first half of training, the cloning weight decayed to 0 by its end
 TEACH_AID = algo.clone_decay_frames=400000 advisor.phase_out_frames=200000
 TEACH_SPEC = algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
-ADVICE_CLONE = algo.clone_weight=$$($(BIN)/python -m experiments.advice choose $(ADVICE_ROOT))
+# the tuned weight, read back from the tuning runs (the recipe stops if they are not finished)
+CHOOSE_CLONE = w=$$($(BIN)/python -m experiments.advice choose $(ADVICE_ROOT)) && echo "cloning weight $$w" &&
 .PHONY: advice-study advice-tune advice-aid advice-spec advice-llm advice-records advice-report
 advice-study: advice-tune advice-aid advice-spec advice-llm advice-records advice-report
 advice-tune: $(STAMP)
@@ -384,14 +386,14 @@ advice-tune: $(STAMP)
 		algo.clone_weight=$(ADVICE_TUNE_WEIGHTS) 'experiment.method=sac_heuristic_w$${algo.clone_weight}'
 advice-aid: $(STAMP)
 	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac,sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
-	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach \
+	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
 		+exp=sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
-	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach \
+	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
 		+exp=sac_hover,sac_random_advice seed=$(ADVICE_FEW_SEEDS)
 advice-spec: $(STAMP)
 	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_override +exp=sac,sac_heuristic seed=$(ADVICE_FEW_SEEDS)
-	$(ADVICE) $(ADVICE_SPEC) $(TEACH_SPEC) $(ADVICE_CLONE) experiment.point=spec_teach +exp=sac_heuristic \
-		seed=$(ADVICE_FEW_SEEDS)
+	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_SPEC) $(TEACH_SPEC) algo.clone_weight=$$w experiment.point=spec_teach \
+		+exp=sac_heuristic seed=$(ADVICE_FEW_SEEDS)
 	# each learning aid alone in SPEC's world: ego-centric columns only, the progress reward only
 	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_aid +exp=sac seed=$(ADVICE_FEW_SEEDS) env=shaped_geodesic \
 		env.reward.progress_weight=0.0 experiment.method=sac_ego_only
@@ -401,7 +403,7 @@ advice-spec: $(STAMP)
 advice-llm: $(STAMP)
 	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac_llm seed=$(ADVICE_FEW_SEEDS) \
 		advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
-	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) $(ADVICE_CLONE) experiment.point=aid_teach +exp=sac_llm \
+	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach +exp=sac_llm \
 		seed=$(ADVICE_FEW_SEEDS) advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
 advice-records: $(STAMP)
 	$(BIN)/python -m experiments.advice records $(ADVICE_ROOT) --out results/advice
