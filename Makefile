@@ -10,7 +10,7 @@ export MKL_NUM_THREADS ?= 1
 export WANDB_MODE ?= offline
 
 # The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run to a few
-# minutes; `make run RUN_ARGS=` trains with the full budget of conf/trainer/default.yaml.
+# minutes; `make run RUN_ARGS=` trains with the full budget of uavlae/conf/trainer/default.yaml.
 RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8
 
 .PHONY: setup run demo test test-slow bench bench-env bench-llm bench-sac clean
@@ -116,8 +116,8 @@ clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis outputs multirun
 
 # ---------------------------------------------------------------------------- the paper's experiments
-# Hydra multirun sweeps (conf/sweep/) at a profile's size (conf/profile/), into runs/<profile>/,
-# then one report (experiments/README.md). Every sweep reuses what its folder holds: a killed
+# Hydra multirun sweeps (uavlae/conf/sweep/) at a profile's size (uavlae/conf/profile/), into runs/<profile>/,
+# then one report (uavlae/experiments/README.md). Every sweep reuses what its folder holds: a killed
 # `make quick` run again resumes its unfinished runs and skips the finished ones.
 #   make quick                     # this 2-core machine, the non-LLM figures (about 3 h; see the README there)
 #   make quick-sens-landed         # Figs. 11-12 again with PPO where it lands (about 1 h more)
@@ -134,7 +134,7 @@ TRAIN_SWEEP = $(BIN)/python -m uavlae.train -m
 EVAL_SWEEP = $(BIN)/python -m uavlae.evaluate -m
 SCENARIOS := n_ou n_ge n_nfz n_bz n_rz
 SENSITIVITY := actor_lr critic_lr batch_size r1 r2 r5 r8
-# The sensitivity method and grids; the quick profile's are reduced (conf/sweep/sens_*.yaml: the paper's)
+# The sensitivity method and grids; the quick profile's are reduced (uavlae/conf/sweep/sens_*.yaml: the paper's)
 SENS_EXP ?= sac_llm
 SENS_SEEDS ?= 0,1,2,3,4
 SENS_GRID_actor_lr ?=
@@ -212,11 +212,11 @@ LLM_ALONE_RUN = +exp=llm run_dir=$(LLM_ALONE_DIR) trainer.eval_chunk=1 trainer.l
 .PHONY: llm-alone
 llm-alone: $(STAMP)
 	$(BIN)/python -m uavlae.train $(LLM_ALONE_RUN)
-	$(BIN)/python -m experiments.llm_alone_table $(LLM_ALONE_DIR) --out results/llm_alone \
+	$(BIN)/python -m uavlae.experiments.llm_alone_table $(LLM_ALONE_DIR) --out results/llm_alone \
 		--command "make llm-alone LLM_ALONE_BUDGET=$(LLM_ALONE_BUDGET) $(if $(LLM_ALONE_EXTRA),LLM_ALONE_EXTRA='$(LLM_ALONE_EXTRA)')"
 
 experiments-report: $(STAMP)
-	$(BIN)/python -m experiments.report $(EXP_ROOT)
+	$(BIN)/python -m uavlae.experiments.report $(EXP_ROOT)
 
 # What a profile's runs leave in the repository: the report (tables, figures, report.md) in
 # results/<profile>/, and the runs' own records in results/<profile>/runs.tar.xz (no wandb files
@@ -226,8 +226,8 @@ experiments-report: $(STAMP)
 # (finished runs are kept as they are; only what is missing runs)
 RESULTS_DIR ?= results/$(PROFILE)
 experiments-results: $(STAMP)
-	$(BIN)/python -m experiments.report $(EXP_ROOT) --out $(RESULTS_DIR)
-	$(BIN)/python -m experiments.archive $(EXP_ROOT) $(RESULTS_DIR)/runs.tar.xz
+	$(BIN)/python -m uavlae.experiments.report $(EXP_ROOT) --out $(RESULTS_DIR)
+	$(BIN)/python -m uavlae.experiments.archive $(EXP_ROOT) $(RESULTS_DIR)/runs.tar.xz
 
 # quick: the grids of the sensitivity figures cut to the default and one value on each side, the
 # profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in
@@ -286,7 +286,7 @@ quick-llm: $(STAMP)
 	$(MAKE) experiments-llm-scenarios PROFILE=quick EXP_ARGS="trainer.eval_plots=1" LLM_SCENARIO_FP=
 	$(MAKE) experiments-llm-sweeps PROFILE=quick EXP_ARGS="$(QUICK_LLM_ARGS)"
 	$(MAKE) experiments-results PROFILE=quick
-	$(BIN)/python -m experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone_episodes --command "make quick-llm"
+	$(BIN)/python -m uavlae.experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone_episodes --command "make quick-llm"
 
 # The LLM alone at the paper's size: seed 0 (it does not depend on the seed), one scenario a
 # chunk, in PAPER_LLM_ALONE_SHARDS jobs: 100 scenarios of up to 1000 decisions at 1-4 s each
@@ -314,7 +314,7 @@ long-sac: $(STAMP)
 		trainer.utd_ratio=0.25 trainer.compile_env=true trainer.total_frames=$(LONG_FRAMES) \
 		trainer.total_episodes=4000 trainer.eval_every_frames=100000 trainer.checkpoint_every_frames=200000 trainer.keep_checkpoints=1 \
 		trainer.eval_episodes=32 trainer.progress_bar=false
-	$(BIN)/python -m experiments.report $(LONG_ROOT)
+	$(BIN)/python -m uavlae.experiments.report $(LONG_ROOT)
 
 # The quick profile's frames/s, method by method, and the wall clock they add up to -> benchmarks/quick_profile_fps.json
 .PHONY: bench-quick-fps
@@ -354,13 +354,13 @@ bench-trigger: $(STAMP)
 
 # ---------------------------------------------------------------------------- the advice study
 # Does an advisor that takes over near obstacles make SAC better, and what must it know?
-# (experiments/README.md, "Does advice teach?"). SAC with advisors of known quality (none, the
+# (uavlae/experiments/README.md, "Does advice teach?"). SAC with advisors of known quality (none, the
 # paper's greedy heuristic, the planner, hovering, uniform random, the local LLM), in the
 # learning-aid world (400k frames) and SPEC's (1M), under the paper's override and under teach
 # (override + a cloning term + a phase-out of the trigger). Every stage is a resumable sweep
 # (finished runs are kept, killed ones resume from their checkpoint): run the same command again.
 # The cloning weight is tuned on seeds apart from the verdict seeds (ADVICE_TUNE_SEEDS), then
-# read back by `experiments.advice choose`. ADVICE_JOBS: runs side by side (one per core).
+# read back by `uavlae.experiments.advice choose`. ADVICE_JOBS: runs side by side (one per core).
 ADVICE_ROOT ?= runs/advice
 ADVICE_JOBS ?= 1
 ADVICE_SEEDS ?= 0,1,2,3,4
@@ -378,7 +378,7 @@ ADVICE_SPEC = env=default trainer.total_frames=1000000 trainer.replay_capacity=1
 TEACH_AID = algo.clone_decay_frames=400000 advisor.phase_out_frames=200000
 TEACH_SPEC = algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
 # the tuned weight, read back from the tuning runs (the recipe stops if they are not finished)
-CHOOSE_CLONE = w=$$($(BIN)/python -m experiments.advice choose $(ADVICE_ROOT)) && echo "cloning weight $$w" &&
+CHOOSE_CLONE = w=$$($(BIN)/python -m uavlae.experiments.advice choose $(ADVICE_ROOT)) && echo "cloning weight $$w" &&
 .PHONY: advice-study advice-tune advice-aid advice-spec advice-llm advice-records advice-report
 advice-study: advice-tune advice-aid advice-spec advice-llm advice-records advice-report
 advice-tune: $(STAMP)
@@ -406,6 +406,6 @@ advice-llm: $(STAMP)
 	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach +exp=sac_llm \
 		seed=$(ADVICE_FEW_SEEDS) advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
 advice-records: $(STAMP)
-	$(BIN)/python -m experiments.advice records $(ADVICE_ROOT) --out results/advice
+	$(BIN)/python -m uavlae.experiments.advice records $(ADVICE_ROOT) --out results/advice
 advice-report: $(STAMP)
-	$(BIN)/python -m experiments.advice report results/advice
+	$(BIN)/python -m uavlae.experiments.advice report results/advice

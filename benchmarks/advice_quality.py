@@ -19,7 +19,7 @@ them meet the same OU motion. Scores per advisor (fractions of its states):
   (a model that copies part (c)'s example), ``top_answer``: the share of the most common answer;
   ``calls``: HTTP calls per state (more than one: an answer was rejected and asked again).
 
-Advisors: ``llm`` (the local LLM with conf/llm/local.yaml), ``llm_verbose`` (the earlier
+Advisors: ``llm`` (the local LLM with uavlae/conf/llm/local.yaml), ``llm_verbose`` (the earlier
 default: the longer observation, ``json_schema``, a 200-character Reasoning), and variants one
 setting away from the compact prompt with the paper's example (``llm_paper_example``): what
 makes the gap to ``llm_verbose`` (``llm_verbose_obs``, ``llm_verbose_grammar``,
@@ -75,7 +75,7 @@ EVENTS = ("bz_collision", "nfz_entry", "ou_collision", "rz_speeding", "boundary_
 # LLM config overrides of each advisor; every one is one setting away from the compact prompt
 # with the paper's example answer (llm_paper_example), so that each names what it changes
 PAPER = {"example": "paper"}
-LLM_VARIANTS = {"llm": {},  # the default (conf/llm/local.yaml)
+LLM_VARIANTS = {"llm": {},  # the default (uavlae/conf/llm/local.yaml)
                 "llm_verbose": {**PAPER, "observation": "verbose", "reasoning_max_chars": 200,
                                 "response_format": "json_schema", "max_tokens": 160},  # the earlier default
                 "llm_paper_example": PAPER,
@@ -367,7 +367,7 @@ def main() -> None:
     ap.add_argument("--n-states", type=int, default=200, help="--collect: states to keep")
     ap.add_argument("--rollout-batch", type=int, default=32)
     ap.add_argument("--rollout-steps", type=int, default=200)
-    ap.add_argument("--d-th", type=float, default=15.0, help="the trigger's threshold (m), as conf/advisor/llm.yaml")
+    ap.add_argument("--d-th", type=float, default=15.0, help="the trigger's threshold (m), as uavlae/conf/advisor/llm.yaml")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--advisors", nargs="+", default=["heuristic", "hover", "random", "llm"], choices=ADVISORS)
     ap.add_argument("--n", type=int, default=None, help="score only the first N states (default: all)")

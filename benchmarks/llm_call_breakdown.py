@@ -52,7 +52,7 @@ from uavlae.machine import describe_machine  # noqa: E402
 OUT = ROOT / "benchmarks" / "llm_call_breakdown.json"
 STATES = ROOT / "benchmarks" / "advice_states.pt"
 
-# LLM config overrides ("server.x" reaches the server's settings); "default" is conf/llm/local.yaml
+# LLM config overrides ("server.x" reaches the server's settings); "default" is uavlae/conf/llm/local.yaml
 SETTINGS: dict[str, dict[str, Any]] = {
     "default": {},
     "paper_example": {"example": "paper"},  # the default until the example became a placeholder

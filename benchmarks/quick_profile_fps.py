@@ -1,6 +1,6 @@
-"""Training frames/s of each method in the ``quick`` profile's setting (conf/profile/quick.yaml),
+"""Training frames/s of each method in the ``quick`` profile's setting (uavlae/conf/profile/quick.yaml),
 one short run each on one thread, and the wall clock of the whole non-LLM quick profile that
-follows from them (the basis of its size; experiments/README.md, "Profiles").
+follows from them (the basis of its size; uavlae/experiments/README.md, "Profiles").
 
     make bench-quick-fps        # -> benchmarks/quick_profile_fps.json
 
@@ -88,7 +88,7 @@ def _n(values: object) -> int:
 
 
 def estimate(rates: dict[str, float], eval_s: float, compile_s: float) -> dict:
-    """The non-LLM quick profile as `make quick` runs it: conf/profile/quick.yaml's frames and
+    """The non-LLM quick profile as `make quick` runs it: uavlae/conf/profile/quick.yaml's frames and
     seeds for the train sweep, quick_sensitivity.yaml's for the sensitivity sweeps."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         q = compose("config", overrides=["+sweep=train", "+profile=quick", "+exp=sac"], return_hydra_config=True)

@@ -9,7 +9,7 @@ plus ``--hold4-args`` (e.g. the rounded cache key's setting); and ``+exp=sac`` a
 machine's speed drifts within minutes; SAC's two runs bracket the LLM's). Every LLM run starts
 with a new, empty cache file (cold: only what the run itself asked can hit) against one local
 server started first (its start-up, reported as ``server_start_s``, is not in any run's time),
-with the server settings of ``conf/llm/local.yaml``. ``--overlap-ab`` adds the hold_steps=1
+with the server settings of ``uavlae/conf/llm/local.yaml``. ``--overlap-ab`` adds the hold_steps=1
 run with ``trainer.overlap_advice=false`` (the gradient steps before the requests, not while
 they are in flight).
 
@@ -102,14 +102,14 @@ def main() -> None:
 
     from omegaconf import OmegaConf
 
-    from uavlae.factories import git_info
+    from uavlae.factories import CONF_DIR, git_info
     from uavlae.files import dump_json
     from uavlae.llm.config import ServerConfig
     from uavlae.llm.server import local_server
     from uavlae.machine import describe_machine
 
     base = make_run_args() + shlex.split(args.extra)
-    server_cfg = ServerConfig(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "llm" / "local.yaml").server))
+    server_cfg = ServerConfig(**OmegaConf.to_container(OmegaConf.load(CONF_DIR / "llm" / "local.yaml").server))
     rows: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)

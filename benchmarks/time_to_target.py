@@ -5,7 +5,7 @@ Stable-Baselines3's SAC on the gymnasium adapter, side by side in one run on one
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/time_to_target.py --cap-minutes 9
     (make bench-ttt; SB3 is the `bench` extra: pip install -e '.[bench]')
 
-Same for both (paper Table 4 / conf/algo/sac.yaml): actor lr 1e-4, critic lr 3e-4, alpha lr 3e-4
+Same for both (paper Table 4 / uavlae/conf/algo/sac.yaml): actor lr 1e-4, critic lr 3e-4, alpha lr 3e-4
 with automatic entropy tuning from alpha = 1 and target entropy -2, batch 256, gamma 0.99,
 tau 0.005, two hidden layers of 64 (ReLU), 5000 uniform-random frames first, one gradient step
 per environment frame, 16 scenarios stepped together (ours: UAVEnv batch 16; SB3: a DummyVecEnv
@@ -117,7 +117,7 @@ def sb3_gradient_steps() -> int:
 
 
 def env_config(name: str):
-    """The ``conf/env/<name>.yaml`` world, validated: both methods train and evaluate on it."""
+    """The ``uavlae/conf/env/<name>.yaml`` world, validated: both methods train and evaluate on it."""
     from hydra import compose, initialize_config_dir
 
     from uavlae.envs import make_env_config
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--ours-override", nargs="*", default=[],
                    help="extra Hydra overrides of our run (e.g. algo.loss_impl=torchrl algo.compile=true)")
     p.add_argument("--env", default="default",
-                   help="conf/env group both methods train and evaluate on (default: SPEC's world; "
+                   help="uavlae/conf/env group both methods train and evaluate on (default: SPEC's world; "
                         "shaped: + progress reward and ego-centric observation columns)")
     p.add_argument("--run-dir", default=None,
                    help="keep our run here (eval/frames_*/episodes.csv, ...) instead of a temporary folder")

@@ -50,7 +50,9 @@ def worker(env_batch: int, compile_env: bool, batches: int) -> None:
         "+exp=sac", f"trainer.env_batch_size={env_batch}", f"trainer.compile_env={str(compile_env).lower()}",
         f"trainer.init_random_frames={WARMUP_RANDOM_FRAMES}",
     ]
-    with initialize_config_dir(config_dir=str(Path.cwd() / "conf"), version_base="1.3"):
+    # the configs of the checkout this runs in: inside the package, or at the root in older commits
+    conf = next(d for d in (Path.cwd() / "uavlae" / "conf", Path.cwd() / "conf") if d.is_dir())
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     tr = make_trainer_config(cfg.trainer)
     env_cfg = make_env_config(cfg.env)

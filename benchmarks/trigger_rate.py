@@ -2,12 +2,12 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/trigger_rate.py      (make bench-trigger)
 
-The training env of ``make run`` (``conf/env/default.yaml``, B = 16 scenarios stepped together,
+The training env of ``make run`` (``uavlae/conf/env/default.yaml``, B = 16 scenarios stepped together,
 episodes reset as they end) is flown for ``--frames`` frames by each of: the greedy heuristic
-(``conf/advisor/heuristic.yaml``; it lands with every GE served on the evaluation set), the
-untrained SAC actor (``conf/algo/sac.yaml``, sampled, as in the first frames of a run) and a
+(``uavlae/conf/advisor/heuristic.yaml``; it lands with every GE served on the evaluation set), the
+untrained SAC actor (``uavlae/conf/algo/sac.yaml``, sampled, as in the first frames of a run) and a
 uniform-random policy (the warm-up). On every state the override's trigger
-(``conf/advisor/llm.yaml``: any BZ, NFZ, RZ or OU within ``d_th``) is evaluated without asking
+(``uavlae/conf/advisor/llm.yaml``: any BZ, NFZ, RZ or OU within ``d_th``) is evaluated without asking
 anyone: the flying policy is never overridden, so no LLM call is made. From the trigger's slots
 the benchmark counts the calls SAC+LLM would make per 1000 frames with ``advisor.hold_steps``
 1 (the paper: every triggered slot) and 4 (a row asks at the first slot of each run of
@@ -99,13 +99,13 @@ def main() -> None:
 
     from uavlae.collect import _UniformRandom
     from uavlae.envs import make_env_config
-    from uavlae.factories import behaviour_actor, git_info, make_env, make_learner
+    from uavlae.factories import CONF_DIR, behaviour_actor, git_info, make_env, make_learner
     from uavlae.files import dump_json
     from uavlae.machine import describe_machine
     from uavlae.policies.heuristic import HeuristicPolicy
     from uavlae.policies.override import HeuristicAdvisor, OverridePolicy
 
-    conf = ROOT / "conf"
+    conf = CONF_DIR
     env_cfg = make_env_config(OmegaConf.load(conf / "env" / "default.yaml"))
     d_th = float(OmegaConf.load(conf / "advisor" / "llm.yaml").d_th)
     env = make_env(env_cfg, args.batch, seed=args.seed)
@@ -120,7 +120,7 @@ def main() -> None:
         "untrained_sac_actor": behaviour_actor(learner),
         "uniform_random": _UniformRandom(env.action_spec, generator),
     }
-    # the override's own trigger (conf/advisor/llm.yaml, the env's perception radius for OUs)
+    # the override's own trigger (uavlae/conf/advisor/llm.yaml, the env's perception radius for OUs)
     trigger = OverridePolicy(heuristic, HeuristicAdvisor(heuristic), mode="proximity", d_th=d_th,
                              perception_radius=env_cfg.safety.perception_radius)
     results = {name: fly(name, p, env, trigger, d_th, steps, args.seed) for name, p in policies.items()}

@@ -57,7 +57,7 @@ def _last(csv_path: Path) -> float:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=8192)
-    p.add_argument("--env", default="shaped", help="conf/env group: shaped adds SPEC §10's learning aids")
+    p.add_argument("--env", default="shaped", help="uavlae/conf/env group: shaped adds SPEC §10's learning aids")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--base", default="ppo", help="the +exp= every method's frames/s is divided by")
     p.add_argument("--methods", nargs="+", default=["wang"], help="+exp= names run after the base")

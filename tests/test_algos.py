@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -24,10 +23,11 @@ from uavlae.algos.ppo_lagrangian import (
     make_ppo_lagrangian,
 )
 from uavlae.algos.sac import SACConfig, make_sac, make_sac_config
+from uavlae.factories import CONF_DIR
 from uavlae.envs import UAVEnv
 from uavlae.policies.networks import action_bounds, make_sac_actor
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "algo"
+CONF = CONF_DIR / "algo"
 
 
 # ---------------------------------------------------------------- Lagrange multiplier

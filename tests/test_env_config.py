@@ -1,15 +1,15 @@
 """The env config: SPEC defaults, the YAML mirror, and errors that name the field."""
 
 import json
-from pathlib import Path
 
 import pytest
 import yaml
 
 from uavlae.envs import UAVEnv
 from uavlae.envs.config import EnvConfig, make_env_config
+from uavlae.factories import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "env" / "default.yaml"
+CONF = CONF_DIR / "env" / "default.yaml"
 
 
 def test_yaml_mirrors_the_model_defaults():

@@ -19,7 +19,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from experiments import report
+from uavlae.experiments import report
 from uavlae.factories import CONF_DIR, REPO_ROOT, validate_config
 
 pytestmark = pytest.mark.timeout(600)
@@ -436,7 +436,7 @@ def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tm
 
     import torch
 
-    from experiments.archive import archive
+    from uavlae.experiments.archive import archive
 
     root = tmp_path / "quick"
     done, paused = root / "train" / "sac" / "seed0", root / "train" / "sac" / "seed1"
@@ -462,7 +462,7 @@ def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tm
 
 
 def test_report_cli_names_a_missing_dir(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "experiments.report", str(tmp_path / "nope")], cwd=REPO_ROOT,
+    res = subprocess.run([sys.executable, "-m", "uavlae.experiments.report", str(tmp_path / "nope")], cwd=REPO_ROOT,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode != 0 and "is not a directory" in res.stderr
 
@@ -619,7 +619,7 @@ def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
         assert [len(s["ou_pos"]) for s in scen] == [k, k]
         rec = json.loads((root / "scenario_n_ou" / f"n_ou={k}" / "sac" / "seed0" / "evaluation.json").read_text())
         assert rec["env"]["ou"]["count"] == {"min": k, "max": k, "pad": 7}
-    _sweep("-m", "experiments.report", str(root))
+    _sweep("-m", "uavlae.experiments.report", str(root))
     md = (root / "report" / "report.md").read_text()
     assert "python -m uavlae.train -m +sweep=train +exp=sac,random seed=0" in md
     assert f"Machine(s): {meta['machine']['cpu']}, {os.cpu_count()} cores\n" in md  # every run records it: no "not recorded"

@@ -2,7 +2,6 @@
 out by hand, then whole episodes on a hand-made map and on the default random scenarios."""
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,6 +11,7 @@ from uavlae.envs import UAVEnv
 from uavlae.envs import physics as ph
 from uavlae.envs.metrics import rollout_metrics
 from uavlae.envs.scenario import Scenario
+from uavlae.factories import CONF_DIR
 from uavlae.policies.greedy import GreedyConfig, GreedyPolicy, make_greedy_config
 
 LA = (475.0, 0.0, 500.0, 25.0)  # SPEC §1; its centre is (487.5, 12.5)
@@ -46,7 +46,7 @@ def _act(policy, *args, **kw):
 
 
 def test_config_yaml_mirrors_model_and_validates():
-    path = Path(__file__).resolve().parents[1] / "conf" / "advisor" / "greedy.yaml"
+    path = CONF_DIR / "advisor" / "greedy.yaml"
     assert make_greedy_config(yaml.safe_load(path.read_text())) == GreedyConfig()
     with pytest.raises(ValueError, match="greedy.headings"):
         make_greedy_config(headings=2)

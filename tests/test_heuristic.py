@@ -1,6 +1,5 @@
 """The greedy heuristic (SPEC §8) on hand-made maps and on the default random scenarios."""
 
-from pathlib import Path
 
 import pytest
 import torch
@@ -10,6 +9,7 @@ from uavlae.envs import UAVEnv, make_env_config
 from uavlae.envs import physics as ph
 from uavlae.envs.metrics import aggregate, rollout_metrics
 from uavlae.envs.scenario import Scenario
+from uavlae.factories import CONF_DIR
 from uavlae.policies.heuristic import HeuristicConfig, HeuristicPolicy, make_heuristic_config
 
 START = (12.5, 487.5)  # centre of TA
@@ -23,7 +23,7 @@ def _run(scenarios, batch=None, seed=0, env_cfg=None, policy=None):
 
 
 def test_config_yaml_mirrors_model_and_validates():
-    path = Path(__file__).resolve().parents[1] / "conf" / "advisor" / "heuristic.yaml"
+    path = CONF_DIR / "advisor" / "heuristic.yaml"
     data = yaml.safe_load(path.read_text())
     assert make_heuristic_config(data) == HeuristicConfig()
     with pytest.raises(ValueError, match="heuristic.grid_cell"):

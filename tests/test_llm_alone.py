@@ -353,7 +353,7 @@ def test_evaluate_entry_point_flies_the_llm_alone_the_same_way(tmp_path, local_l
 @pytest.mark.integration
 @pytest.mark.timeout(600)
 def test_exp_llm_in_two_shards_on_the_local_server_fills_one_run(tmp_path, local_llm):
-    from experiments.llm_alone_table import build, markdown
+    from uavlae.experiments.llm_alone_table import build, markdown
     from uavlae.train import reuse_state, run
 
     run_dir = tmp_path / "llm"

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from uavlae.files import atomic_write
-from uavlae.factories import CONF_DIR, package_versions, without_hydra_output
+from uavlae.factories import package_versions, without_hydra_output
 
 
 class DeterministicActor(nn.Module):
@@ -106,7 +106,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     return export_actor(learner, env.action_spec, out, meta)
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+@hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     if not cfg.checkpoint or not cfg.get("out"):
         raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2")

@@ -26,8 +26,11 @@ from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
 from uavlae.validation import StrictModel
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-CONF_DIR = REPO_ROOT / "conf"
+PACKAGE_DIR = Path(__file__).resolve().parent
+# The configs ship inside the package, so an installed uavlae composes the same runs as a checkout.
+CONF_DIR = PACKAGE_DIR / "conf"
+# The checkout the package sits in (its parent folder); installed, this is site-packages, no checkout.
+REPO_ROOT = PACKAGE_DIR.parent
 
 
 def _container(cfg: Any) -> dict[str, Any]:
@@ -357,7 +360,10 @@ def make_controller(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any = None
 
 def git_info() -> dict[str, Any]:
     """The commit of the code that ran, and whether tracked files differed from it. ``results/``
-    does not count: it holds outputs (a regenerated report), never code that runs."""
+    does not count: it holds outputs (a regenerated report), never code that runs. An installed
+    package has no checkout of its own: ``None`` for both, and the package's version (in
+    :func:`package_versions`) tells which code ran. A checkout counts only when it is the one
+    that holds this package, not a repository that happens to contain site-packages."""
 
     def git(*args: str) -> str | None:
         try:
@@ -366,6 +372,9 @@ def git_info() -> dict[str, Any]:
             return None
         return out.stdout.strip() if out.returncode == 0 else None
 
+    top = git("rev-parse", "--show-toplevel")
+    if top is None or Path(top).resolve() != Path(REPO_ROOT).resolve():
+        return {"commit": None, "dirty": None}
     commit = git("rev-parse", "HEAD")
     status = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
     return {"commit": commit, "dirty": bool(status) if status is not None else None}

@@ -645,7 +645,7 @@ def _trajectory_images(eval_dir: Path) -> dict[str, Path]:
     return {f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}": p for p in sorted(eval_dir.glob("trajectory_*.png"))}
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+@hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     # one INFO line per HTTP request buries the progress bar; the LLM counters are in the logs
     logging.getLogger("httpx").setLevel(logging.WARNING)

@@ -6,7 +6,8 @@ at batch 1 with the same :class:`~uavlae.envs.world.ObservationLayout` as
 scenario, seed and actions it reproduces ``UAVEnv(batch_size=[1])`` step for step, which makes
 it the honest "one scenario per call" reference of the throughput benchmark.
 
-Registered as ``"uavlae/UAV-v0"`` when this module is imported (:func:`register_gym`).
+Registered as ``"uavlae/UAV-v0"`` when the package is imported (:func:`uavlae.register_gym`), so
+``gymnasium.make("uavlae:uavlae/UAV-v0")`` finds it in a fresh interpreter.
 """
 
 from __future__ import annotations
@@ -20,10 +21,11 @@ import torch
 from gymnasium import spaces
 from tensordict import TensorDictBase
 
+from uavlae import GYM_ID, register_gym
 from uavlae.envs.config import EnvConfig, make_env_config
 from uavlae.envs.world import EVENT_KEYS, REWARD_KEYS, ObservationLayout, initial_state, world_step
 
-GYM_ID = "uavlae/UAV-v0"
+__all__ = ["GYM_ID", "UAVGymEnv", "register_gym"]
 
 
 def _scenario_dict(scenario: Any, cfg: EnvConfig) -> dict[str, torch.Tensor]:
@@ -159,13 +161,3 @@ class UAVGymEnv(gym.Env):
         fig = draw_scenario(self.state, trajectories=[np.stack(self._path)], cfg=self.cfg,
                             figsize=(5.0, 5.0), dpi=60)
         return figure_to_rgb(fig)
-
-
-def register_gym() -> None:
-    """Register ``UAVGymEnv`` with gymnasium as ``"uavlae/UAV-v0"`` (idempotent)."""
-    if GYM_ID not in gym.registry:
-        # no max_episode_steps: the world truncates itself at cfg.t_max
-        gym.register(id=GYM_ID, entry_point="uavlae.envs.gym_adapter:UAVGymEnv")
-
-
-register_gym()

@@ -22,7 +22,7 @@ GrammarStyle = Literal["auto", "compact", "verbose"]
 View = Literal["full", "local"]
 FlashAttn = Literal["auto", "on", "off"]
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "llm"
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf" / "llm"  # the presets ship inside the package
 
 
 class ServerConfig(StrictModel):

@@ -1,4 +1,4 @@
-"""``python -m experiments.archive RUNS_DIR OUT.tar.xz``: a runs directory's records in one file.
+"""``python -m uavlae.experiments.archive RUNS_DIR OUT.tar.xz``: a runs directory's records in one file.
 
 What the report reads (configs, metadata, final metrics, scalar logs, evaluation records, the
 evaluation sets, Hydra's multirun records) goes in as it is. Left out: wandb files, pictures

@@ -5,7 +5,7 @@ the scored episodes' ``episodes.csv``) and writes the five metrics over the scor
 each episode's length, decisions and outcome, the LLM's cost, and, for reference, the greedy
 heuristic flown on the same scenarios with the same seeds (one scenario per chunk, as the run).
 
-    python -m experiments.llm_alone_table runs/llm_alone --out results/llm_alone --command "make llm-alone"
+    python -m uavlae.experiments.llm_alone_table runs/llm_alone --out results/llm_alone --command "make llm-alone"
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""``python -m experiments.report RUNS_DIR [--out DIR]``: the paper's tables and figures from
-the runs of the sweeps (conf/sweep/, experiments/README.md).
+"""``uavlae-report RUNS_DIR [--out DIR]`` (``python -m uavlae.experiments.report``): the paper's
+tables and figures from the runs of the sweeps (uavlae/conf/sweep/, uavlae/experiments/README.md).
 
 It collects every run under ``RUNS_DIR``: training runs (``uavlae.train``: ``config.json``,
 ``meta.json``, ``final_metrics.json``, ``logs/scalars/``) and evaluations (``uavlae.evaluate``:
@@ -28,7 +28,6 @@ import json
 import math
 import shlex
 import sys
-import time
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -206,10 +205,14 @@ def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
 
 def _provenance(meta: dict[str, Any]) -> dict[str, Any]:
     """What a run's ``meta.json`` says produced it: the commit (short), whether the code differed
-    from it, the package versions and the machine. Train and evaluation runs record it alike."""
+    from it, the package versions and the machine. Train and evaluation runs record it alike. A
+    run of an installed package has no commit: its uavlae version stands in its place."""
     git = meta.get("git") or {}
-    return {"commit": str(git.get("commit") or "")[:10], "dirty": git.get("dirty"),
-            "packages": meta.get("packages") or {}, "machine": machine_label(meta)}
+    packages = meta.get("packages") or {}
+    commit = str(git.get("commit") or "")[:10]
+    if not commit and packages.get("uavlae"):
+        commit = f"uavlae {packages['uavlae']}"
+    return {"commit": commit, "dirty": git.get("dirty"), "packages": packages, "machine": machine_label(meta)}
 
 
 _PROGRESS_KEYS = ("eval/episodes_scored", "eval/episodes_total", "llm/calls", "llm/http_calls", "llm/fallbacks")
@@ -622,8 +625,11 @@ def sweep_commands(root: Path) -> list[str]:
     return list(dict.fromkeys(out))
 
 
-def build(root: Path, out: Path) -> dict[str, Any]:
-    """Collect, aggregate and write everything; returns what it wrote (the tests read it)."""
+def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
+    """Collect, aggregate and write everything; returns what it wrote (the tests read it).
+    ``command``: the command line that wrote it, as the report should show it (default: this
+    module on ``root``). The report names no absolute path of ``root``, so that it reads the same
+    wherever it is regenerated."""
     runs, skipped = collect(root)
     out.mkdir(parents=True, exist_ok=True)
     style = Style([r.method for r in runs] or ["none"])
@@ -740,11 +746,13 @@ def build(root: Path, out: Path) -> dict[str, Any]:
         result["figures"] += figs
         md += [f"![long]({f})" for f in figs if f.endswith(".png")] + [""]
 
+    shown = display_path(root)
+    command = command or shlex.join(["python", "-m", "uavlae.experiments.report", shown])
     header = [
         "# Experiments report",
         "",
-        f"Runs directory: `{root}`  ",
-        f"Written: {time.strftime('%Y-%m-%d %H:%M:%S %Z')} by `python -m experiments.report {shlex.quote(str(root))}`  ",
+        f"Runs directory: `{shown}`  ",
+        f"Written by: `{command}`  ",
         f"Profile(s): {', '.join(profiles) or 'none'}  ",
         f"World(s): {'; '.join(worlds) or 'none'}  ",
         f"Runs: {len(runs)} collected, {len(skipped)} skipped (below)  ",
@@ -902,17 +910,31 @@ def _fig_long(r: Run, style: Style, out: Path, note: str) -> list[str]:
     return _save(fig, out, f"long_{r.method}", note)
 
 
+def display_path(path: Path) -> str:
+    """``path`` relative to the working directory when it lies inside it (a report names no
+    folder of the machine that wrote it), else its last part alone."""
+    path = Path(path).resolve()
+    try:
+        return path.relative_to(Path.cwd().resolve()).as_posix() or "."
+    except ValueError:
+        return path.name
+
+
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("runs_dir", type=Path, help="a sweeps' experiment.root (e.g. runs/quick)")
+    p = argparse.ArgumentParser(prog="uavlae-report", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs_dir", type=Path, help="a sweeps' experiment.root (e.g. runs/quick), or a folder of run "
+                   "records (e.g. results/quick/runs)")
     p.add_argument("--out", type=Path, default=None, help="where to write (default RUNS_DIR/report)")
-    a = p.parse_args(argv)
+    a = p.parse_args(sys.argv[1:] if argv is None else argv)
     if not a.runs_dir.is_dir():
         p.error(f"{a.runs_dir} is not a directory")
     import matplotlib
 
     matplotlib.use("Agg")
-    res = build(a.runs_dir.resolve(), (a.out or a.runs_dir / "report").resolve())
+    command = ["python", "-m", "uavlae.experiments.report", display_path(a.runs_dir)]
+    command += ["--out", display_path(a.out)] if a.out else []
+    res = build(a.runs_dir.resolve(), (a.out or a.runs_dir / "report").resolve(), shlex.join(command))
     print(f"{res['runs']} runs, {len(res['skipped'])} skipped, {len(res['figures'])} figure files -> "
           f"{(a.out or a.runs_dir / 'report') / 'report.md'}")
     for path, why in res["skipped"]:

@@ -1,4 +1,4 @@
-"""The advice study (``make advice-study``; experiments/README.md, "Does advice teach?").
+"""The advice study (``make advice-study``; uavlae/experiments/README.md, "Does advice teach?").
 
 Three steps, each a sub-command:
 
@@ -13,7 +13,7 @@ Three steps, each a sub-command:
   seeds (``aid_tune``): the weight whose actor alone scores the highest mean of DCR and SLR at
   the end (ties: the smaller weight). Prints the weight; writes nothing.
 - ``report results/advice``: tables, figures and ``report.md`` from those CSV files alone
-  (:mod:`experiments.advice_report`).
+  (:mod:`uavlae.experiments.advice_report`).
 
 A run's cell is its world (``aid``: ``env=shaped_geodesic``; ``spec``: ``env=default``), its
 transfer (``override``: the paper's; ``teach``: override, cloning and phase-out; ``tune``: the
@@ -198,7 +198,7 @@ def choose(root: Path, point: str = "aid_tune") -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m experiments.advice", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m uavlae.experiments.advice", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("records", help="the study's runs -> CSV records")
     r.add_argument("runs", type=Path)
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "choose":
         print(choose(args.runs, args.point))
     else:
-        from experiments.advice_report import build
+        from uavlae.experiments.advice_report import build
 
         print(build(args.records))
 
