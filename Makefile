@@ -105,7 +105,7 @@ bench-theile: $(STAMP)
 # The greedy heuristic and the planner on the same 32 and 256 scenarios -> results/heuristics_table.{json,md}
 .PHONY: heuristics-table
 heuristics-table: $(STAMP)
-	$(BIN)/python experiments/heuristics_table.py
+	$(BIN)/python -m uavlae.experiments.heuristics_table
 
 # What copying the ego direction column earns with no learning -> benchmarks/follow_direction.json
 .PHONY: bench-follow
@@ -218,16 +218,15 @@ llm-alone: $(STAMP)
 experiments-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.report $(EXP_ROOT)
 
-# What a profile's runs leave in the repository: the report (tables, figures, report.md) in
-# results/<profile>/, and the runs' own records in results/<profile>/runs.tar.xz (no wandb files
-# or pictures; finished runs' checkpoints without replay buffer or collector: experiments/archive.py),
-# so that the report can be rebuilt and extended elsewhere:
-#   mkdir -p runs && tar xJf results/quick/runs.tar.xz -C runs && make quick EXP_ARGS=seed=3
-# (finished runs are kept as they are; only what is missing runs)
+# What a profile's runs leave in the repository (uavlae/experiments/records.py): the records the
+# report needs in results/<profile>/records/ (configs, metadata, final metrics, training curves,
+# per-episode records; no checkpoint, buffer, wandb file or picture), then the report (tables,
+# figures, report.md) in results/<profile>/, written from those records, so that a clone
+# regenerates it as committed: python -m uavlae.experiments.report results/quick/records --out results/quick
 RESULTS_DIR ?= results/$(PROFILE)
 experiments-results: $(STAMP)
-	$(BIN)/python -m uavlae.experiments.report $(EXP_ROOT) --out $(RESULTS_DIR)
-	$(BIN)/python -m uavlae.experiments.archive $(EXP_ROOT) $(RESULTS_DIR)/runs.tar.xz
+	$(BIN)/python -m uavlae.experiments.records $(EXP_ROOT) $(RESULTS_DIR)/records
+	$(BIN)/python -m uavlae.experiments.report $(RESULTS_DIR)/records --out $(RESULTS_DIR)
 
 # quick: the grids of the sensitivity figures cut to the default and one value on each side, the
 # profile quick_sensitivity (two seeds, 120k frames), plain SAC as the method (the LLM's are in

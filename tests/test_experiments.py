@@ -431,34 +431,66 @@ def test_report_on_synthetic_runs(tmp_path):
     assert final2["cpo"]["n_seeds"] == 1 and final2["cpo"]["DCR"] == pytest.approx(0.3)
 
 
-def test_archive_keeps_records_and_finished_runs_actors_without_their_buffers(tmp_path):
-    import tarfile
-
-    import torch
-
-    from uavlae.experiments.archive import archive
+def test_records_keep_what_the_report_reads_with_relative_paths(tmp_path):
+    from uavlae.experiments.records import write_records
 
     root = tmp_path / "quick"
-    done, paused = root / "train" / "sac" / "seed0", root / "train" / "sac" / "seed1"
-    for d in (done, paused):
-        (d / "checkpoints").mkdir(parents=True)
-        (d / "wandb").mkdir()
-        (d / "wandb" / "run.wandb").write_text("x")
-        (d / "config.json").write_text("{}")
-        (d / "trajectory_0.png").write_bytes(b"png")
-        torch.save({"learner": {"w": torch.ones(3)}, "replay_buffer": {"obs": torch.zeros(1000, 8)},
-                    "collector": {"env": torch.zeros(64, 8)}},
-                   d / "checkpoints" / "last.pt")
-    (done / "final_metrics.json").write_text("{}")
-    names = archive(root, tmp_path / "runs.tar.xz")
-    assert sorted(names) == ["quick/train/sac/seed0/checkpoints/last.pt", "quick/train/sac/seed0/config.json",
-                             "quick/train/sac/seed0/final_metrics.json", "quick/train/sac/seed1/config.json"]
-    out = tmp_path / "out"
-    with tarfile.open(tmp_path / "runs.tar.xz") as tar:
-        tar.extractall(out, filter="data")
-    lean = torch.load(out / "quick/train/sac/seed0/checkpoints/last.pt", weights_only=False)
-    assert lean["replay_buffer"] is None and lean["collector"] is None
-    assert torch.equal(lean["learner"]["w"], torch.ones(3))
+    _synthetic(root)
+    d = root / "train" / "sac" / "seed0"
+    (d / "checkpoints").mkdir()
+    (d / "checkpoints" / "last.pt").write_bytes(b"state")
+    (d / "wandb").mkdir()
+    (d / "wandb" / "run.wandb").write_text("x")
+    (d / "trajectory_0.png").write_bytes(b"png")
+    (d / "logs" / "scalars" / "train" / "loss_actor.csv").write_text("1,2\n")
+    cfg = json.loads((d / "config.json").read_text())
+    cfg["run_dir"] = str(d)  # a resumed run saves its folder resolved
+    (d / "config.json").write_text(json.dumps(cfg))
+    meta = json.loads((d / "meta.json").read_text())
+    (d / "meta.json").write_text(json.dumps({**meta, "argv": [str(tmp_path / "uavlae" / "train.py")], "pid": 7}))
+    sweep = root / ".multirun" / "train" / "2026-01-01_00-00-00"
+    sweep.mkdir(parents=True)
+    (sweep / "multirun.yaml").write_text(f"hydra:\n  runtime:\n    cwd: {tmp_path}\n  job:\n    name: train\n"
+                                         f"  overrides:\n    task: [+sweep=train, experiment.root={root}]\n")
+    files = write_records(root, tmp_path / "records", base=tmp_path)
+    rec = tmp_path / "records" / "train" / "sac" / "seed0"
+    kept = sorted(str(p.relative_to(rec)) for p in rec.rglob("*") if p.is_file())
+    assert kept == ["config.json", "final_metrics.json", "logs/scalars/episode/mean_return.csv",
+                    "logs/scalars/override/advisor/calls.csv",
+                    "logs/scalars/train/episodes.csv", "meta.json"]
+    assert json.loads((rec / "config.json").read_text())["run_dir"] == "quick/train/sac/seed0"
+    assert set(json.loads((rec / "meta.json").read_text())) == {"git", "packages", "machine", "command"}
+    assert (tmp_path / "records" / ".multirun" / "train" / "2026-01-01_00-00-00" / "multirun.yaml").read_text() == (
+        "hydra:\n  job:\n    name: train\n  overrides:\n    task:\n    - +sweep=train\n    - experiment.root=quick\n")
+    assert not any(str(tmp_path) in (tmp_path / "records" / f).read_text() for f in files)
+    # what the report reads is all there: the same tables from the records as from the runs
+    assert report.build(tmp_path / "records", tmp_path / "a")["tables"] == report.build(root, tmp_path / "b")["tables"]
+    # a path the records cannot make relative is an error naming the file and the key
+    cfg["trainer"] = {**cfg.get("trainer", {}), "eval_set": "/elsewhere/sets/eval.json"}
+    (d / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match=r"train/sac/seed0/config.json.trainer.eval_set: /elsewhere/sets/eval.json"):
+        write_records(root, tmp_path / "records", base=tmp_path)
+    assert (tmp_path / "records" / "train" / "sac" / "seed0" / "config.json").is_file()  # the old records stay
+
+
+@pytest.mark.parametrize("profile", ["quick", "long", "budget"])
+def test_the_committed_report_regenerates_from_the_committed_records(profile, tmp_path, monkeypatch):
+    """Every table, the report and its list of figures, byte for byte, from ``results/<profile>/records``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    monkeypatch.chdir(REPO_ROOT)  # the report names its folders relative to where it runs
+    committed = REPO_ROOT / "results" / profile
+    written_by = next(ln for ln in (committed / "report.md").read_text().splitlines() if ln.startswith("Written by: "))
+    command = written_by.split("`")[1]
+    assert command == f"python -m uavlae.experiments.report results/{profile}/records --out results/{profile}"
+    res = report.build(Path("results") / profile / "records", tmp_path, command)
+    assert res["skipped"] == []
+    for f in sorted(tmp_path.iterdir()):
+        if f.suffix in (".csv", ".md", ".json"):
+            assert f.read_bytes() == (committed / f.name).read_bytes(), f.name
+    figures = {f.name for f in tmp_path.iterdir() if f.suffix in (".png", ".pdf")}
+    assert figures == set(res["figures"]) and figures <= {f.name for f in committed.iterdir()}
 
 
 def test_report_cli_names_a_missing_dir(tmp_path):
