@@ -61,7 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 from uavlae.envs import UAVEnv, make_env_config  # noqa: E402
 from uavlae.envs.world import current_target  # noqa: E402
-from uavlae.files import atomic_write, dump_json  # noqa: E402
+from uavlae.files import atomic_write, dump_json, portable  # noqa: E402
 from uavlae.llm import Advice, LLMAdvisor, WorldLimits, advisor_states_from_tensordict, make_llm_config  # noqa: E402
 from uavlae.llm.prompt import PAPER_EXAMPLE_VELOCITY  # noqa: E402
 from uavlae.machine import describe_machine  # noqa: E402
@@ -413,7 +413,7 @@ def main() -> None:
             entry["per_state"]["paper_example"] = paper_example_flags(entry["actions"], env.cfg.motion.v_max)
             entry["summary"] = {**summarise(entry["per_state"], list(range(k))),
                                 "top_answer": top_answer_share(entry["actions"])}
-            entry["rescored"] = "python benchmarks/advice_quality.py " + " ".join(sys.argv[1:])
+            entry["rescored"] = portable("python benchmarks/advice_quality.py " + " ".join(sys.argv[1:]), ROOT)
         dump_json(out_path, results)
         args.advisors = []
     for name in args.advisors:
@@ -427,7 +427,7 @@ def main() -> None:
         actions = [[round(x, 4) for x in a] for a in ans["action"].tolist()]
         per_state["paper_example"] = paper_example_flags(actions, env.cfg.motion.v_max)
         entry = {"n_states": n, "wall_s": round(time.perf_counter() - t0, 1),
-                 "command": "python benchmarks/advice_quality.py " + " ".join(sys.argv[1:]),
+                 "command": portable("python benchmarks/advice_quality.py " + " ".join(sys.argv[1:]), ROOT),
                  "summary": summarise(per_state, list(range(n))), "per_state": per_state,
                  "llm_overrides": LLM_VARIANTS.get(name), "rejected": ans.get("rejected"), "actions": actions}
         entry["summary"]["top_answer"] = top_answer_share(actions)

@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.base is None or not (a.base / ".venv" / "bin" / "python").exists():
         p.error("--base must be a checkout of the project with its own .venv")
     from uavlae.factories import dump_json
+    from uavlae.files import portable
     from uavlae.machine import describe_machine
 
     base, ours = a.base.resolve(), ROOT
@@ -77,8 +78,8 @@ def main(argv: list[str] | None = None) -> None:
               flush=True)
     dump_json(a.out, {
         "what": "env-steps/s of step_and_maybe_reset with random actions, one thread, ours vs --base",
-        "command": "python benchmarks/env_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "base": str(base),
+        "command": portable("python benchmarks/env_ab.py " + " ".join(sys.argv[1:] if argv is None else argv), ROOT),
+        "base": portable(str(base), ROOT),
         "rows": rows,
         "machine": describe_machine(),
     })

@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 from uavlae.machine import describe_machine  # noqa: E402
 from uavlae.factories import dump_json  # noqa: E402
+from uavlae.files import portable  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = {"DCR": (">=", 0.9), "CR": ("<=", 0.1), "SLR": (">=", 0.9)}
@@ -185,7 +186,7 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
         if lines:
             frames["n"] = max(frames["n"], int(float(lines[-1].split(",")[0])))
     out = clock.summary("uavlae_sac", frames["n"])
-    out["command"] = "python -m uavlae.train " + " ".join(overrides)
+    out["command"] = portable("python -m uavlae.train " + " ".join(overrides), ROOT)
     return out
 
 
@@ -296,7 +297,8 @@ def main(argv: list[str] | None = None) -> None:
     eval_set = work / "eval_set.json"
     load_or_make_eval_set(env_config(a.env), eval_set, a.eval_episodes, a.eval_seed)
     result = {"measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(),
-              "command": "python benchmarks/time_to_target.py " + " ".join(sys.argv[1:] if argv is None else argv),
+              "command": portable("python benchmarks/time_to_target.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                                  ROOT),
               "target": {k: f"{op} {v}" for k, (op, v) in TARGET.items()}, "hyperparameters": SAC_HP,
               "eval_every_frames": a.eval_every, "eval_episodes": a.eval_episodes, "eval_seed": a.eval_seed,
               "seed": a.seed, "cap_minutes": a.cap_minutes, "env": a.env, "ours_overrides": a.ours_override, "methods": {}}

@@ -111,6 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.base is None or not (a.base / ".venv" / "bin" / "python").exists():
         p.error("--base must be a checkout of the project with its own .venv")
     from uavlae.factories import dump_json
+    from uavlae.files import portable
     from uavlae.machine import describe_machine
 
     base, ours = a.base.resolve(), ROOT
@@ -124,7 +125,8 @@ def main(argv: list[str] | None = None) -> None:
                     fps[name].append(_measure(checkout, b, compile_env == "true", a.batches))
             ratios = [o / s for o, s in zip(fps["ours"], fps["base"])]
             row = {"env_batch": b, "compile_env": compile_env == "true",
-                   "command": "python benchmarks/train_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                   "command": portable("python benchmarks/train_ab.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                                       ROOT),
                    "fps_ours": fps["ours"],
                    "fps_base": fps["base"], "ratios": ratios, "median_ratio": statistics.median(ratios)}
             rows.append(row)
@@ -133,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
                   flush=True)
     out = {
         "what": "training frames/s of +exp=sac (collector batch, replay extend, utd updates), ours vs --base",
-        "base": str(base),
+        "base": portable(str(base), ROOT),
         "rows": rows,
         "machine": describe_machine(),
     }

@@ -8,8 +8,8 @@ the other, with the same seed, world, frame budget and evaluation set (the 32
 scenarios of results/eval_set_32.json). Reported side by side: the training frames/s of the loop (``time/fps`` at the last
 batch: collection plus updates, before the final evaluation) and each method's ratio to the
 base's, and the five metrics of each deterministic actor, beside a uniform-random policy on the
-same scenarios. Run it under ``/work/tools/timed``-like isolation: the frames/s are only
-comparable within one run.
+same scenarios. Run it on an otherwise idle machine: the frames/s are only comparable within
+one run.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import load_scenarios
 from uavlae.evaluate import Evaluator
 from uavlae.factories import CONF_DIR
-from uavlae.files import dump_json
+from uavlae.files import dump_json, portable
 from uavlae.machine import describe_machine
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,7 +85,8 @@ def main() -> None:
                 "updates": final["updates"],
                 "wall_s": round(wall, 1),
                 "metrics": {k: final[f"eval/{k}"] for k in PAPER_METRICS},
-                "command": "python " + " ".join(c if not c.startswith("run_dir=") else "run_dir=<tmp>" for c in cmd[1:]),
+                "command": portable("python " + " ".join(c if not c.startswith("run_dir=") else "run_dir=<tmp>"
+                                                         for c in cmd[1:]), ROOT),
             }
             print(method, runs[method]["train_fps"], runs[method]["metrics"], flush=True)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -99,7 +100,7 @@ def main() -> None:
         "runs": runs,
         "uniform_random": {k: random_agg[k] for k in PAPER_METRICS},
         **{f"fps_ratio_{m}_over_{a.base}": runs[m]["train_fps"] / runs[a.base]["train_fps"] for m in a.methods},
-        "command": "python benchmarks/vs_ppo.py " + " ".join(sys.argv[1:]),
+        "command": portable("python benchmarks/vs_ppo.py " + " ".join(sys.argv[1:]), ROOT),
         "machine": describe_machine(),
     }
     dump_json(out_file, out)

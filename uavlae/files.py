@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_write", "dump_json", "train_eval_dir"]
+__all__ = ["ABSOLUTE_PATH", "atomic_write", "dump_json", "portable", "train_eval_dir"]
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any], *, previous: str | os.PathLike[str] | None = None) -> Path:
@@ -41,6 +42,27 @@ def dump_json(path: str | os.PathLike[str], obj: Any, *, indent: int | None = 1,
     """``obj`` as JSON in ``path``, atomically (objects JSON does not know are written as ``str``)."""
     text = json.dumps(obj, indent=indent, allow_nan=allow_nan, default=str)
     return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+# an absolute path: a "/" that starts a token (the text's start, or after a space, "=", ":", a
+# quote or a bracket) and two or more folder names; "~/x/y", "<tmp>/x/y" and URLs are not one
+ABSOLUTE_PATH = re.compile(r"(?<![^\s=:'\"(\[,`])/[\w.+-]+(?:/[\w.+-]*)+")
+
+
+def portable(text: str, root: str | os.PathLike[str]) -> str:
+    """``text`` (a command line, a path) as a committed record should name its paths: relative to
+    ``root`` (the checkout that made it; ``../other`` for a sibling checkout), the temporary folder
+    as ``<tmp>``, so that nothing names a folder of the machine that wrote it."""
+    root, tmp = os.path.realpath(root), os.path.realpath(tempfile.gettempdir())
+
+    def one(m: re.Match[str]) -> str:
+        path = os.path.realpath(m.group(0))
+        inside = path == root or path.startswith(root + os.sep)
+        if not inside and (path == tmp or path.startswith(tmp + os.sep)):
+            return "<tmp>" + path[len(tmp):]
+        return os.path.relpath(path, root)
+
+    return ABSOLUTE_PATH.sub(one, text)
 
 
 def train_eval_dir(run_dir: str | os.PathLike[str], frames: int) -> Path:

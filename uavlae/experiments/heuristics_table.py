@@ -1,6 +1,6 @@
 """The paper's greedy heuristic against the global planner beyond the paper, on the same scenarios.
 
-    python experiments/heuristics_table.py          # make heuristics-table; writes results/heuristics_table.{json,md}
+    python -m uavlae.experiments.heuristics_table   # make heuristics-table; writes results/heuristics_table.{json,md}
 
 Each (method, evaluation set) is one ``python -m uavlae.train +exp=METHOD`` subprocess (the
 evaluation-only controllers: no training) with ``trainer.eval_set`` pointing at the set:
@@ -31,11 +31,11 @@ import torch
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.files import atomic_write, dump_json
+from uavlae.files import atomic_write, dump_json, portable
 from uavlae.machine import describe_machine
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "results"
+# the repository's results folder: the tool runs from the checkout's root (make heuristics-table)
+RESULTS = Path("results")
 METHODS = {
     "heuristic": "the paper's greedy heuristic (uavlae.policies.greedy)",
     "heuristic_planner": "visibility-graph planner, beyond the paper (uavlae.policies.heuristic)",
@@ -69,7 +69,7 @@ def main() -> None:
                     "logger.wandb.mode=disabled",
                 ]
                 t0 = time.perf_counter()
-                subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
                 wall = time.perf_counter() - t0
                 final = json.loads((run_dir / "final_metrics.json").read_text())
                 metrics = {k: final[f"eval/{k}"] for k in (*PAPER_METRICS, "mean_length")}
@@ -79,10 +79,11 @@ def main() -> None:
                     metrics[f"{k}_rate"] = sum(str(r[k]).lower() in ("true", "1", "1.0") for r in rows) / len(rows)
                 shown = [c if not c.startswith("run_dir=") else "run_dir=<tmp>" for c in cmd[1:]]
                 runs.append({"method": method, "eval_set": set_name, "episodes": final.get("eval/n_episodes"),
-                             "metrics": metrics, "wall_s": round(wall, 1), "command": "python " + " ".join(shown)})
+                             "metrics": metrics, "wall_s": round(wall, 1),
+                             "command": portable("python " + " ".join(shown), Path.cwd())})
                 print(method, set_name, {k: round(v, 3) for k, v in metrics.items()}, f"{wall:.0f} s", flush=True)
-    out = {"runs": runs, "methods": METHODS, "sets": {k: str(v.relative_to(ROOT)) for k, v in sets.items()},
-           "command": "python experiments/heuristics_table.py " + " ".join(sys.argv[1:]), "machine": describe_machine()}
+    out = {"runs": runs, "methods": METHODS, "sets": {k: v.as_posix() for k, v in sets.items()},
+           "command": "python -m uavlae.experiments.heuristics_table " + " ".join(sys.argv[1:]), "machine": describe_machine()}
     dump_json(RESULTS / "heuristics_table.json", out)
     lines = [
         "# The greedy heuristic (the paper's) and the global planner (beyond the paper)", "",

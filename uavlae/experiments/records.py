@@ -38,7 +38,7 @@ from typing import Any
 
 import yaml
 
-from uavlae.files import train_eval_dir
+from uavlae.files import ABSOLUTE_PATH, train_eval_dir
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 # The scalar curves the report reads: Fig. 3 (return against frames and against training
@@ -48,8 +48,6 @@ ADVISOR_CURVES = ("calls.csv", "cache_hits.csv")  # anywhere under logs/scalars/
 # meta.json: what the report and a reader need; argv (the launcher's, with its absolute path) and
 # the pid are the process's, not the run's
 META_KEYS = ("git", "packages", "machine", "command", "overrides")
-# a token that starts with "/" and has two or more parts: an absolute path of some machine
-ABSOLUTE = re.compile(r"(?:^|[\s=:'\"(\[,])(/[\w.+-]+/[\w.+/-]*)")
 
 
 def _relative(value: Any, swaps: list[tuple[str, str]], where: str, found: list[str]) -> Any:
@@ -65,7 +63,7 @@ def _relative(value: Any, swaps: list[tuple[str, str]], where: str, found: list[
         # the prefix as a whole folder: "/a/b" in "/a/b/c" and "/a/b", not in "/a/bc"
         value = re.sub(re.escape(prefix) + r"(/|(?=$|[\s'\",)\]]))",
                        lambda m: (replacement + m.group(1)) if replacement else ("" if m.group(1) else "."), value)
-    found += [f"{where}: {m}" for m in ABSOLUTE.findall(value)]
+    found += [f"{where}: {m}" for m in ABSOLUTE_PATH.findall(value)]
     return value
 
 
