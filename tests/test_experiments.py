@@ -5,6 +5,7 @@ instance end to end (train sweep -> scenario sweep -> report)."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -627,25 +628,27 @@ def test_evaluate_honours_env_overrides(tmp_path):
 # ---------------------------------------------------------------------------- multirun
 
 
-def _sweep(*args: str, timeout: int = 400) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "UAVLAE_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
+def _sweep(*args: str, timeout: int = 400, wandb: str = "disabled") -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "UAVLAE_NUM_THREADS": "1", "WANDB_MODE": wandb, "WANDB_SILENT": "true"}
     res = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=timeout)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return res
 
 
-def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
+def test_joblib_sweeps_train_evaluate_report_and_log_their_dashboards_offline(tmp_path):
+    from wandb_records import read_offline_run
+
     root = tmp_path / "exp"
     tiny = [t for t in TINY if not t.startswith("logger.")]
-    _sweep("-m", "uavlae.train", "-m", "+sweep=train", "+exp=sac,random", "seed=0", f"experiment.root={root}", *tiny)
-    for method in ("sac", "random"):
-        final = json.loads((root / "train" / method / "seed0" / "final_metrics.json").read_text())
-        assert final["frames"] == (128 if method == "sac" else 0)
+    campaign = ["experiment.profile=quick", f"experiment.root={root}", "logger.wandb.mode=offline"]
+    _sweep("-m", "uavlae.train", "-m", "+sweep=train", "+exp=sac", "seed=0,1", *campaign, *tiny, wandb="offline")
+    finals = {s: json.loads((root / "train" / "sac" / f"seed{s}" / "final_metrics.json").read_text()) for s in (0, 1)}
+    assert all(f["frames"] == 128 for f in finals.values())
     meta = json.loads((root / "train" / "sac" / "seed0" / "meta.json").read_text())
     assert meta["command"].startswith("python -m uavlae.train ") and "+exp=sac" in meta["command"]
     assert meta["machine"]["logical_cores"] == os.cpu_count() and meta["machine"]["torch"] == torch.__version__
     _sweep("-m", "uavlae.evaluate", "-m", "+sweep=scenario_n_ou", "+exp=sac", "seed=0", "env.ou.count.max=3,7",
-           f"experiment.root={root}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=1")
+           *campaign, "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=1", wandb="offline")
     for k in (3, 7):
         scen = json.loads((root / "eval_sets" / f"n_ou_{k}.json").read_text())
         assert [len(s["ou_pos"]) for s in scen] == [k, k]
@@ -653,11 +656,40 @@ def test_joblib_sweeps_train_evaluate_and_report(tmp_path):
         assert rec["env"]["ou"]["count"] == {"min": k, "max": k, "pad": 7}
     _sweep("-m", "uavlae.experiments.report", str(root))
     md = (root / "report" / "report.md").read_text()
-    assert "python -m uavlae.train -m +sweep=train +exp=sac,random seed=0" in md
+    assert "python -m uavlae.train -m +sweep=train +exp=sac seed=0,1" in md
     assert f"Machine(s): {meta['machine']['cpu']}, {os.cpu_count()} cores\n" in md  # every run records it: no "not recorded"
     assert "Fig. 5: metrics against N_OU" in md and (root / "report" / "fig5_scenario_n_ou.pdf").is_file()
     rows = (root / "report" / "runs.csv").read_text().splitlines()
     assert len(rows) == 1 + 2 + 2
+
+    # the dashboards: one group for the invocation, runs named by method and seed, filterable tags,
+    # the final and baseline metrics in the summary, the per-episode records as tables
+    group = f"quick:{root}"
+    for seed, final in finals.items():
+        run_dir = root / "train" / "sac" / f"seed{seed}"
+        (offline,) = (run_dir / "wandb").glob("offline-run-*")
+        run = read_offline_run(offline)
+        assert (run["group"], run["name"], run["job_type"]) == (group, f"sac seed{seed}", "train")
+        assert set(run["tags"]) == {"method:sac", f"seed:{seed}", "sweep:train", "point:default", "profile:quick",
+                                    "kind:train"}
+        for key in ("eval/DCR", "eval/CR", "eval/SLR", "baseline/heuristic/DCR", "baseline/random/SLR", "wall_s"):
+            assert run["summary"][key] == pytest.approx(final[key]), key
+        with open(run_dir / "eval" / "frames_000000128" / "episodes.csv", newline="") as fh:
+            episodes = list(csv.reader(fh))
+        table = run["tables"]["eval/episodes"]
+        assert table["columns"] == episodes[0] and len(table["data"]) == 2  # trainer.eval_episodes
+        col = episodes[0].index("data_collected")
+        assert [r[col] for r in table["data"]] == pytest.approx([float(r[col]) for r in episodes[1:]])
+        assert {"baseline/heuristic/episodes", "baseline/random/episodes"} <= set(run["tables"])
+    for k in (3, 7):
+        out = root / "scenario_n_ou" / f"n_ou={k}" / "sac" / "seed0"
+        (offline,) = (out / "wandb").glob("offline-run-*")
+        run = read_offline_run(offline)
+        assert (run["group"], run["name"], run["job_type"]) == (group, f"sac seed0 n_ou={k}", "evaluate")
+        assert {"method:sac", "seed:0", "sweep:scenario_n_ou", f"point:n_ou={k}", "kind:evaluate"} <= set(run["tags"])
+        metrics = json.loads((out / "evaluation.json").read_text())["metrics"]
+        assert run["summary"]["eval/DCR"] == pytest.approx(metrics["DCR"]) and run["summary"]["frames"] == 128
+        assert len(run["tables"]["eval/episodes"]["data"]) == 2
 
 
 def test_ray_sweep_on_a_local_instance(tmp_path):
@@ -673,15 +705,36 @@ def test_ray_sweep_on_a_local_instance(tmp_path):
     assert len(pids) == 2 and os.getpid() not in pids  # two Ray workers, not this process
 
 
-def test_wandb_runs_are_grouped_and_tagged_by_sweep_and_method_with_trajectory_images(tmp_path):
+def test_wandb_group_name_and_tags_by_hand():
+    from types import SimpleNamespace
+
+    from uavlae.runlog import wandb_group, wandb_name, wandb_tags
+
+    def ex(**kw):
+        base = {"sweep": "train", "profile": "quick", "root": "runs/quick", "point": "default", "method": "sac", "tags": ()}
+        return SimpleNamespace(**{**base, **kw})
+
+    # make quick and make baselines-budget: the same profile and sweep, two campaigns, two groups
+    assert wandb_group(None, ex()) == "quick:runs/quick"
+    assert wandb_group(None, ex(root="runs/budget/")) == "quick:runs/budget"
+    assert wandb_group(None, ex(profile=None)) == "runs/quick"
+    assert wandb_group(None, ex(sweep=None)) is None and wandb_group("mine", ex()) == "mine"
+    assert wandb_name("sac", 2, ex()) == "sac seed2"
+    assert wandb_name("ppo", 0, ex(sweep="scenario_n_ou", point="n_ou=3")) == "ppo seed0 n_ou=3"
+    assert wandb_name("sac", 0, ex(sweep=None, point="x")) == "sac seed0"
+    assert wandb_tags(["a" * 70], ex(sweep="scenario_n_ou", point="n_ou=3"), 1, kind="evaluate", method="ppo") == [
+        "a" * 64, "method:ppo", "seed:1", "sweep:scenario_n_ou", "point:n_ou=3", "profile:quick", "kind:evaluate"]
+
+
+def test_wandb_runs_are_grouped_by_invocation_named_and_tagged_with_trajectory_images(tmp_path):
     from uavlae.factories import make_logger
 
     cfg = _cfg("+sweep=train", "+profile=quick", "+exp=sac", "seed=1", "logger.wandb.mode=offline")
     logger = make_logger(cfg, tmp_path, "sac-test", {"name": "sac"})
     try:
         run = logger.loggers["wandb"].experiment
-        assert run.group == "train"
-        assert set(run.tags) == {"method:sac", "seed:1", "sweep:train", "point:default", "profile:quick"}
+        assert run.group == "quick:runs/quick" and run.name == "sac seed1"  # the profile and its sweeps' root
+        assert set(run.tags) == {"method:sac", "seed:1", "sweep:train", "point:default", "profile:quick", "kind:train"}
         import matplotlib
 
         matplotlib.use("Agg")

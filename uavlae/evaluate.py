@@ -35,6 +35,7 @@ from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, 
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
 from uavlae.factories import CONF_DIR, without_hydra_output
 from uavlae.files import dump_json
+from uavlae.runlog import log_evaluation
 
 log = logging.getLogger(__name__)
 
@@ -315,6 +316,7 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
         "meta": run_metadata(resolved),  # type: ignore[arg-type]
     }
     dump_json(record_file, record)
+    log_evaluation(cfg, out, record)
     log.info("%s\n%s", out, format_metrics(agg))
     return agg
 

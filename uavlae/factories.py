@@ -395,12 +395,15 @@ class RunLogger:
     """torchrl's ``CSVLogger`` (always) and ``WandbLogger`` (unless disabled) behind one call.
 
     Every metric goes with ``step`` = environment frames. ``state_dict`` holds what resuming
-    needs: the CSV logger's counters and the wandb run id.
+    needs: the CSV logger's counters and the wandb run id. Closing it after the run has written
+    its ``final_metrics.json`` publishes them to the wandb run's summary, with the final and
+    baseline evaluations' per-episode records as tables (:func:`uavlae.runlog.publish_final`).
     """
 
-    def __init__(self, loggers: Mapping[str, Any], run_id: str):
+    def __init__(self, loggers: Mapping[str, Any], run_id: str, run_dir: str | os.PathLike[str] | None = None):
         self.loggers = dict(loggers)
         self.run_id = run_id
+        self.run_dir = None if run_dir is None else Path(run_dir)
 
     def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         clean = {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
@@ -436,6 +439,11 @@ class RunLogger:
                 lg.load_state_dict(state[k])
 
     def close(self) -> None:
+        lg = self.loggers.get("wandb")
+        if lg is not None and self.run_dir is not None:
+            from uavlae.runlog import publish_final
+
+            publish_final(lg.experiment, self.run_dir)
         for lg in self.loggers.values():
             close = getattr(lg, "close", None)
             if close is not None:
@@ -465,8 +473,10 @@ def without_hydra_output(argv: list[str]) -> list[str]:
 def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any]) -> RunLogger:
     """``conf/logger`` -> :class:`RunLogger`; CSV under ``<run_dir>/logs/scalars``, the wandb
     run (offline by default) under ``<run_dir>/wandb`` with the resolved config, the git
-    commit and the package versions."""
+    commit and the package versions, grouped, named and tagged as :mod:`uavlae.runlog` says."""
     from torchrl.record.loggers import CSVLogger
+
+    from uavlae.runlog import wandb_group, wandb_name, wandb_tags
 
     lc = make_logger_config(cfg.logger)
     ex = make_experiment_config(cfg.experiment)
@@ -477,29 +487,19 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
         from torchrl.record.loggers import WandbLogger
 
         loggers["wandb"] = WandbLogger(
-            exp_name=str(cfg.name),
+            exp_name=wandb_name(ex.method, int(cfg.seed), ex),
             offline=lc.wandb.mode == "offline",
             save_dir=str(run_dir),
             id=run_id,
             project=lc.wandb.project,
             entity=lc.wandb.entity,
-            group=lc.wandb.group or ex.sweep,
+            group=wandb_group(lc.wandb.group, ex),
             tags=wandb_tags(lc.wandb.tags, ex, int(cfg.seed)),
+            job_type="train",
             config=dict(hparams),
             mode=lc.wandb.mode,
         )
-    return RunLogger(loggers, run_id)
-
-
-def wandb_tags(tags: Any, ex: ExperimentConfig, seed: int) -> list[str]:
-    """The run's wandb tags: the configured ones, then its sweep, method, profile, point and
-    seed (a dashboard filters each figure's runs by these), each cut to wandb's 64 characters."""
-    out = list(tags) + list(ex.tags) + [f"method:{ex.method}", f"seed:{seed}"]
-    if ex.sweep:
-        out += [f"sweep:{ex.sweep}", f"point:{ex.point}"]
-    if ex.profile:
-        out.append(f"profile:{ex.profile}")
-    return list(dict.fromkeys(t[:64] for t in out))
+    return RunLogger(loggers, run_id, run_dir)
 
 
 def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:
