@@ -85,8 +85,13 @@ def test_installed_package_trains_from_an_empty_folder_evaluates_and_reports(ins
     python, bin_ = installed / "bin" / "python", installed / "bin"
     work = tmp_path / "empty"
     work.mkdir()
-    _run([str(python), "-m", "uavlae.train", "+exp=sac", *TINY, "trainer.baselines=false"], cwd=work)
+    # not a terminal: progress lines (here one per env step) instead of a bar
+    _run([str(python), "-m", "uavlae.train", "+exp=sac", *TINY, "trainer.baselines=false",
+          "trainer.progress_every_s=0.000001"], cwd=work)
     (run_dir,) = (work / "runs" / "sac").iterdir()  # the run lies under the folder it was started in
+    lines = [ln for ln in (run_dir / "train.log").read_text().splitlines() if "sac seed0: " in ln]
+    assert "sac seed0: 4 / 128 frames (3.1%)" in lines[0] and "frames/s, ETA" in lines[0]
+    assert "128 / 128 frames (100.0%)" in lines[-1] and "last evaluation at 128: DCR" in lines[-1]
     final = json.loads((run_dir / "final_metrics.json").read_text())
     assert final["frames"] == 128 and 0.0 <= final["eval/DCR"] <= 1.0
     meta = json.loads((run_dir / "meta.json").read_text())

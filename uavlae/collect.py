@@ -104,6 +104,7 @@ class UAVCollector:
         overlap: False calls ``between`` before the advice is sent instead (the same numbers:
             the advisor never reads what ``between`` changes; a baseline for what the overlap buys).
         on_step: called with every executed transition ``[B]`` (after ``keep_keys``).
+        on_frames: called with ``B`` after every env step (a progress bar that moves within a batch).
     """
 
     def __init__(
@@ -122,6 +123,7 @@ class UAVCollector:
         between: Callable[[], Any] | None = None,
         overlap: bool = True,
         on_step: Callable[[TensorDictBase], Any] | None = None,
+        on_frames: Callable[[int], Any] | None = None,
     ):
         if len(env.batch_size) != 1:
             raise ValueError(f"UAVCollector needs an env with batch_size [B], got {list(env.batch_size)}")
@@ -143,6 +145,7 @@ class UAVCollector:
         self.between = between
         self.overlap = bool(overlap)
         self.on_step = on_step
+        self.on_frames = on_frames
         self.timing = {"between_s": 0.0, "overlap_s": 0.0}
         self.frames = 0
         self.batches = 0
@@ -212,6 +215,8 @@ class UAVCollector:
         self.frames += self.B
         if self.on_step is not None:
             self.on_step(out)
+        if self.on_frames is not None:
+            self.on_frames(self.B)
         return out
 
     def rollout_batch(self) -> TensorDictBase:

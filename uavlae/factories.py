@@ -81,6 +81,7 @@ class TrainerConfig(StrictModel):
     checkpoint_every_frames: int = Field(ge=0)
     keep_checkpoints: int = Field(ge=1, le=2)
     progress_bar: bool
+    progress_every_s: float = Field(default=60.0, ge=0)  # a progress line this often where no bar shows (0: none)
     log_every_batches: int = Field(ge=1)
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight

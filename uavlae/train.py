@@ -61,11 +61,12 @@ from uavlae.factories import (
     validate_config,
 )
 from uavlae.files import atomic_write, train_eval_dir
+from uavlae.progress import progress_for
 
 log = logging.getLogger(__name__)
 
 # What a resumed run may take from the new command line; everything else is the saved config.
-RESUME_RUNTIME_KEYS = ("threads", "trainer.progress_bar", "logger.wandb.mode")
+RESUME_RUNTIME_KEYS = ("threads", "trainer.progress_bar", "trainer.progress_every_s", "logger.wandb.mode")
 # What the replay buffer keeps of a transition (the collector already dropped the raw state).
 REPLAY_KEYS = (
     "observation", "action", "action_source",
@@ -470,8 +471,6 @@ def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, log
 def _train(
     cfg: DictConfig, tr: Any, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path, ckpt: dict[str, Any] | None
 ) -> dict[str, Any]:
-    from tqdm.auto import tqdm
-
     seed_everything(int(cfg.seed))
     env = make_env(env_cfg, tr.env_batch_size, seed=int(cfg.seed), device=cfg.device, compile_step=tr.compile_env)
     learner = make_learner(cfg.algo, env)
@@ -484,6 +483,7 @@ def _train(
     counters["next_eval"] = tr.eval_every_frames or tr.total_frames
     counters["next_ckpt"] = tr.checkpoint_every_frames or tr.total_frames
     updates = OffPolicyUpdates(learner, replay, tr, counters) if off_policy else None
+    bar = progress_for(cfg, tr, int(ckpt["counters"]["frames"]) if ckpt else 0)
     collector = UAVCollector(
         env,
         policy,
@@ -497,6 +497,7 @@ def _train(
         between=updates.run if updates is not None else None,
         on_step=updates.add if updates is not None else None,
         overlap=tr.overlap_advice,
+        on_frames=bar.advance,
     )
     last_eval: dict[str, float] = {}
     if ckpt:
@@ -538,7 +539,6 @@ def _train(
         episodes_done = tr.total_episodes is not None and counters["episodes"] >= tr.total_episodes
         return counters["frames"] >= tr.total_frames or episodes_done
 
-    bar = tqdm(total=tr.total_frames, initial=counters["frames"], unit="frame", disable=not tr.progress_bar, dynamic_ncols=True)
     t_start, frames_start, wall_start = time.perf_counter(), counters["frames"], float(counters["wall_s"])
     train_logs: dict[str, float] = {}
     timing = dict(collector.timing)
@@ -595,10 +595,7 @@ def _train(
                 every = tr.checkpoint_every_frames or tr.total_frames
                 counters["next_ckpt"] = (frames // every + 1) * every
                 checkpoint(final=finished)
-            bar.update(n_new)
-            post = {"fps": f"{(frames - frames_start) / max(time.perf_counter() - t_start, 1e-9):.0f}"}
-            post.update({k: f"{last_eval[k]:.3f}" for k in ("DCR", "CR", "SLR") if k in last_eval})
-            bar.set_postfix(post, refresh=False)
+            bar.batch_done(frames, last_eval, counters.get("last_eval_frames"))
             t_iter = time.perf_counter()
             if finished:
                 break

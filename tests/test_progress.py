@@ -1,0 +1,74 @@
+"""Progress: a bar that moves with every env step on a terminal; elsewhere a line at the stated
+interval with frames, frames/s, ETA and the last evaluation's metrics (numbers by hand)."""
+
+from __future__ import annotations
+
+import io
+import logging
+
+import torch
+
+from uavlae.collect import UAVCollector
+from uavlae.envs import UAVEnv
+from uavlae.progress import Progress, format_duration
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_durations_by_hand():
+    assert format_duration(42.4) == "42s" and format_duration(300) == "5m00s" and format_duration(3725) == "1h02m"
+    assert format_duration(-3) == "0s"
+
+
+def test_lines_at_the_stated_interval_with_rate_eta_and_the_last_evaluation(caplog):
+    clock = Clock()
+    p = Progress(1000, initial=200, name="sac seed0", bar=True, every_s=60, stream=io.StringIO(), clock=clock)
+    assert p.bar is None  # not a terminal: lines instead
+    with caplog.at_level(logging.INFO, logger="uavlae.progress"):
+        clock.t += 30
+        p.advance(100)  # 30 s: before the interval, no line
+        assert caplog.messages == []
+        p.batch_done(300, {"DCR": 0.25, "CR": 0.5, "SLR": 0.0, "RVR": 0.1}, 256)
+        clock.t += 30
+        p.advance(100)  # 60 s, 200 frames since the start: 3.33 frames/s, 600 left: 180 s
+        assert caplog.messages == [
+            "sac seed0: 400 / 1,000 frames (40.0%), 3 frames/s, ETA 3m00s; "
+            "last evaluation at 256: DCR 0.250 CR 0.500 SLR 0.000"]
+        clock.t += 10
+        p.advance(100)  # 10 s after the last line: none
+        assert len(caplog.messages) == 1
+        p.close()  # the closing line
+        assert caplog.messages[-1].startswith("sac seed0: 500 / 1,000 frames (50.0%)")
+    quiet = Progress(1000, bar=False, every_s=0, clock=clock)
+    with caplog.at_level(logging.INFO, logger="uavlae.progress"):
+        clock.t += 1000
+        quiet.advance(10)
+        quiet.close()
+    assert len(caplog.messages) == 2  # every_s=0: no line at all
+
+
+def test_the_bar_moves_with_every_env_step_inside_a_batch():
+    env = UAVEnv(batch_size=[4], seed=0)
+    term = Terminal()
+    p = Progress(64, name="t", bar=True, stream=term)
+    seen = []
+    collector = UAVCollector(env, lambda td: td.set("action", torch.zeros(4, 2)), frames_per_batch=32, total_frames=64,
+                             on_frames=lambda n: (p.advance(n), seen.append(p.bar.n)))
+    batch = next(iter(collector))
+    assert batch.batch_size == torch.Size([4, 8])
+    assert seen == [4, 8, 12, 16, 20, 24, 28, 32]  # 8 steps of 4 frames, not one jump at the batch's end
+    p.batch_done(32, {"DCR": 0.5})
+    assert p.bar.postfix.endswith("DCR=0.500")
+    p.close()
+    assert "32.0/64.0" in term.getvalue()  # the bar as drawn at the end of the batch
