@@ -104,13 +104,21 @@ def test_llm_sweeps_share_the_complete_prompt_at_15_m():
 
 
 @pytest.mark.parametrize("launcher, target", [
-    ("local", "JoblibLauncher"), ("ray_local", "RayLauncher"), ("slurm", "SlurmLauncher"),
+    ("local", "JoblibLauncher"), ("ray_local", "RayLauncher"), ("slurm", "SlurmLauncher"), ("slurm_local", "LocalLauncher"),
 ])
 def test_launchers_compose(launcher, target):
     cfg = _cfg("+sweep=train", f"hydra/launcher={launcher}", hydra=True)
     assert cfg.hydra.launcher._target_.endswith(target)
-    if launcher == "slurm":
+    if launcher.startswith("slurm"):
         assert cfg.hydra.launcher.cpus_per_task == 1 and cfg.hydra.launcher.gpus_per_node == 0
+
+
+def test_the_local_twin_asks_for_the_slurm_jobs_resources():
+    slurm = _cfg("+sweep=train", "hydra/launcher=slurm", hydra=True).hydra.launcher
+    local = _cfg("+sweep=train", "hydra/launcher=slurm_local", hydra=True).hydra.launcher
+    shared = set(OmegaConf.load(CONF_DIR / "hydra" / "launcher" / "slurm_local.yaml")) - {"defaults"}
+    assert shared == {"timeout_min", "cpus_per_task", "gpus_per_node", "tasks_per_node", "mem_gb", "nodes"}
+    assert {k: local[k] for k in shared} == {k: slurm[k] for k in shared}
 
 
 def test_sweeps_default_to_joblib_with_two_jobs():
@@ -703,6 +711,20 @@ def test_ray_sweep_on_a_local_instance(tmp_path):
     assert all(f["frames"] == 0 and 0 <= f["eval/DCR"] <= 1 for f in finals)
     pids = {json.loads((root / "train" / "random" / f"seed{s}" / "meta.json").read_text())["pid"] for s in (0, 1)}
     assert len(pids) == 2 and os.getpid() not in pids  # two Ray workers, not this process
+
+
+def test_submitit_local_sweep_runs_the_slurm_path_on_this_machine(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    root = tmp_path / "exp"
+    res = _sweep("-m", "uavlae.train", "-m", "+sweep=train", "+exp=random", "seed=0,1", "hydra/launcher=slurm_local",
+                 f"experiment.root={root}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10", "trainer.eval_plots=0")
+    assert "Submitit 'local' sweep output dir" in res.stdout + res.stderr
+    finals = [json.loads((root / "train" / "random" / f"seed{s}" / "final_metrics.json").read_text()) for s in (0, 1)]
+    assert all(f["frames"] == 0 and 0 <= f["eval/DCR"] <= 1 for f in finals)
+    pids = {json.loads((root / "train" / "random" / f"seed{s}" / "meta.json").read_text())["pid"] for s in (0, 1)}
+    assert len(pids) == 2 and os.getpid() not in pids  # two submitit jobs, not this process
+    # submitit's own records of each job: its pickled result beside its logs
+    assert len(list(root.glob(".multirun/train/*/.submitit/*/*_result.pkl"))) == 2
 
 
 def test_wandb_group_name_and_tags_by_hand():
