@@ -1,6 +1,6 @@
 """SAC gradient steps per second on CPU, one thread: our learner vs a plain-PyTorch reference.
 
-Measures, side by side in one run (STYLE.md rule 10), on the same replay-shaped batch:
+Measures, side by side in one run (docs/style.md rule 10), on the same replay-shaped batch:
 
 - ``uavlae_fused``: :func:`uavlae.algos.sac.make_sac` as shipped (``loss_impl: fused``: SACLoss's
   gradients written out by hand, ``uavlae.algos.sac_fused``; ``Adam(fused=True).step()``; the

@@ -20,7 +20,7 @@ everything from the start of the method (set-up, collection, updates, evaluation
 the first evaluation that meets the target; frames/s counts training time only (evaluations
 excluded). Each method stops at the target or at its wall-clock cap (checked at every gradient
 step); then the best evaluation seen is reported. The cores are shared with other jobs, so the
-absolute figures mean little; the ratio measured in this one run is the result (STYLE.md rule 10).
+absolute figures mean little; the ratio measured in this one run is the result (docs/style.md rule 10).
 """
 
 from __future__ import annotations

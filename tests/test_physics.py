@@ -1,4 +1,4 @@
-"""Unit tests of uavlae.envs.physics against hand-computed numbers (SPEC.md §2-§7).
+"""Unit tests of uavlae.envs.physics against hand-computed numbers (docs/model.md §2-§7).
 
 Defaults used throughout: H = 10 m, alpha = 0.36, TP = 0.01 W, N = 1e-6, tau = 3.6,
 v_max = 10 m/s, t_fly = t_hover = 1 s, d_min = 5 m, d_safe = 15 m, sigma = [8, .4, .4, .4, .6, .4, .6, 1, .01].

@@ -1,8 +1,11 @@
 """What a clone of the repository holds stands on its own: committed results, benchmarks and docs
-name no folder of the machine that made them."""
+name no folder of the machine that made them, and every citation of the model's specification
+(SPEC §n: docs/model.md), of the style rules (docs/style.md rule n) and of a file of the
+repository resolves inside it."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import tempfile
 from pathlib import Path
@@ -55,3 +58,39 @@ def test_portable_paths_by_hand(tmp_path):
     tmp = Path(tempfile.gettempdir()).resolve()
     assert portable(f"run_dir={tmp / 'ttt' / 'run'}", "/srv/x/checkout") == "run_dir=<tmp>/ttt/run"
     assert portable(f"--set {tmp_path / 'c' / 'results' / 's.json'}", tmp_path / "c") == "--set results/s.json"
+
+
+# "SPEC §8", "SPEC §2-§7", "SPEC §8–§9", "docs/model.md §7-§8", "SPEC §10's"
+SPEC_CITATION = re.compile(r"(?:\bSPEC|docs/model\.md)(?:'s)?\s+((?:§\s*\d+\s*(?:[-–,]|and|or)?\s*)+)")
+RULE_CITATION = re.compile(r"docs/style\.md,? rules?\s+(\d+)")
+FILE_CITATION = re.compile(r"(?<![\w/.-])((?:docs|uavlae|benchmarks|results|tests)/[\w/.-]*\w\.(?:md|py|yaml|json|png|pt))")
+
+
+def test_every_citation_resolves_inside_the_repository():
+    model = (REPO_ROOT / "docs" / "model.md").read_text()
+    sections = {int(n) for n in re.findall(r"^## (\d+)\. ", model, re.MULTILINE)}
+    assert sections == set(range(1, 11))
+    assert "SPEC §n" in model and "*SPEC's world*" in model  # the page says what the short forms mean
+    rules = {int(n) for n in re.findall(r"^(\d+)\. ", (REPO_ROOT / "docs" / "style.md").read_text(), re.MULTILINE)}
+    assert rules == set(range(1, 14))
+    this = Path(__file__).resolve()
+    cited, broken = 0, []
+    for f in tracked("."):
+        if f.suffix not in (".py", ".md", ".yaml", ".txt") and f.name != "Makefile":
+            continue
+        text = text_of(f)
+        if text is None or f.relative_to(REPO_ROOT).parts[0] == "results":
+            continue
+        rel = f.relative_to(REPO_ROOT)
+        # the specification and the style rules are cited from here, no longer from outside
+        broken += [f"{rel}: {name}" for name in ("SPEC.md", "STYLE.md") if name in text and f.resolve() != this]
+        for m in SPEC_CITATION.finditer(text):
+            cited += 1
+            broken += [f"{rel}: {m.group(0).strip()}" for n in re.findall(r"\d+", m.group(1)) if int(n) not in sections]
+        for m in RULE_CITATION.finditer(text):
+            cited += 1
+            broken += [f"{rel}: {m.group(0)}"] if int(m.group(1)) not in rules else []
+        if f.resolve() != this:  # this file's own examples are not citations
+            broken += [f"{rel}: {m.group(1)}" for m in FILE_CITATION.finditer(text) if not (REPO_ROOT / m.group(1)).exists()]
+    assert cited > 90  # the code cites the specification throughout
+    assert broken == []

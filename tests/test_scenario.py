@@ -1,4 +1,4 @@
-"""Scenario sampling, validity, connectivity and the JSON format (SPEC.md §1).
+"""Scenario sampling, validity, connectivity and the JSON format (docs/model.md §1).
 
 Validity is checked here with independent pure-Python geometry (float64, a BFS on the grid),
 not only through :func:`validate_scenarios`.

@@ -1,4 +1,4 @@
-"""The collector and the replay buffer (STYLE.md: scenario → env → override policy → collector →
+"""The collector and the replay buffer (docs/style.md: scenario → env → override policy → collector →
 replay buffer).
 
 :class:`UAVCollector` steps one batched :class:`~uavlae.envs.UAVEnv` with a policy (usually an

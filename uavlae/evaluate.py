@@ -1,4 +1,4 @@
-"""Evaluation on a fixed, seeded set of scenarios (SPEC.md §5; paper §6.2); no training code.
+"""Evaluation on a fixed, seeded set of scenarios (docs/model.md §5; paper §6.2); no training code.
 
 The evaluation set is sampled once with ``trainer.eval_seed`` and saved as JSON
 (``<run_dir>/eval_set.json``, or ``trainer.eval_set``), then reloaded, so every evaluation of a

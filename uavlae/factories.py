@@ -1,4 +1,4 @@
-"""``make_*`` factories for the entry points, one per config group (STYLE.md rule 5).
+"""``make_*`` factories for the entry points, one per config group (docs/style.md rule 5).
 
 ``conf/env`` -> :func:`make_env`, ``conf/algo`` -> :func:`make_learner`, ``conf/advisor`` (+ the
 ``heuristic`` and ``llm`` nodes) -> :func:`make_policy` / :func:`make_controller`,
@@ -106,7 +106,7 @@ class TrainerConfig(StrictModel):
 
 
 class AdvisorConfig(StrictModel):
-    """``conf/advisor``: who overrides the learner's action, and when (SPEC.md §8)."""
+    """``conf/advisor``: who overrides the learner's action, and when (docs/model.md §8)."""
 
     mode: Literal["proximity", "fixed_prob", "always", "never"]
     # heuristic: the one of heuristic_kind; hover and random: scripted advisors of known, poor

@@ -1,4 +1,4 @@
-"""The LLM alone (SPEC.md §8, paper §6.1 "LLM"): the LLM decides every step of every episode.
+"""The LLM alone (docs/model.md §8, paper §6.1 "LLM"): the LLM decides every step of every episode.
 
 ``python -m uavlae.train +exp=llm`` flies the fixed evaluation set with an
 :class:`~uavlae.policies.override.OverridePolicy` in ``mode="always"``. A full evaluation is

@@ -188,7 +188,7 @@ class OffPolicyUpdates:
             self.run()
 
 
-# What the closing summary says of each paper metric (SPEC.md §5).
+# What the closing summary says of each paper metric (docs/model.md §5).
 METRIC_MEANINGS = {
     "DCR": "data collected / data there, higher is better",
     "CR": "episodes with a collision, lower is better",

@@ -1,5 +1,5 @@
 """The strict base of every config model, and one way to turn user config (None, a mapping, an OmegaConf node or the model itself) into a
-validated pydantic model, with an error that names every offending field (STYLE.md rule 6)."""
+validated pydantic model, with an error that names every offending field (docs/style.md rule 6)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """DDPG (Lillicrap et al. 2016) on torchrl's ``DDPGLoss``: deterministic actor, Polyak targets.
 
-SPEC.md §8: same network sizes as SAC (2x64); learning rates as SAC's Table 4.
+docs/model.md §8: same network sizes as SAC (2x64); learning rates as SAC's Table 4.
 
 ``update(batch)`` takes a replay sample ``[N]`` with ``"observation"``, ``"action"``,
 ``("next", "observation")``, ``("next", "reward")``, ``("next", "done")``,

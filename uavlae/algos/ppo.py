@@ -1,6 +1,6 @@
 """PPO (Schulman et al. 2017) on torchrl's ``ClipPPOLoss`` and ``GAE``.
 
-SPEC.md §8: same network sizes as SAC (2x64), clip 0.2; learning rates as SAC's Table 4.
+docs/model.md §8: same network sizes as SAC (2x64), clip 0.2; learning rates as SAC's Table 4.
 
 ``update(batch)`` is one full PPO update on an on-policy batch of shape ``[*B, T]`` (time last,
 as the collector returns it) with ``"observation"``, ``"action"``, ``"action_log_prob"`` (written
@@ -47,7 +47,7 @@ class PPOConfig(StrictConfig):
     critic_lr: float = Field(3e-4, gt=0)
     gamma: float = Field(0.99, gt=0, le=1)
     gae_lambda: float = Field(0.95, ge=0, le=1)
-    clip_epsilon: float = Field(0.2, gt=0, lt=1)  # SPEC.md §8
+    clip_epsilon: float = Field(0.2, gt=0, lt=1)  # docs/model.md §8
     epochs: int = Field(10, ge=1)
     minibatch_size: int = Field(256, ge=1)
     entropy_coeff: float = Field(0.0, ge=0)

@@ -2,8 +2,8 @@
 
 The paper's CPO (after safety-starter-agents) maximises the return subject to a limit d = 0.05
 on the discounted cost J_c = E[sum_t gamma_c^t c_t] of an episode, and keeps each policy update
-inside a trust region of mean KL divergence 0.01. SPEC.md §8 reads it as a Lagrangian-constrained
-PPO (c_t of SPEC.md §7: the weighted sum of boundary exit, OU collision, building collision and
+inside a trust region of mean KL divergence 0.01. docs/model.md §8 reads it as a Lagrangian-constrained
+PPO (c_t of docs/model.md §7: the weighted sum of boundary exit, OU collision, building collision and
 NFZ entry; the env writes it to ``("next", "cost")``).
 
 One ``update(batch)`` on an on-policy batch ``[*B, T]`` (time last, consecutive batches of the
@@ -145,7 +145,7 @@ class LagrangeMultiplier:
 
 class CPOConfig(PPOConfig):
     name: Literal["cpo"] = "cpo"  # type: ignore[assignment]
-    cost_limit: float = Field(0.05, ge=0)  # SPEC.md §7-§8: d on the discounted cost
+    cost_limit: float = Field(0.05, ge=0)  # docs/model.md §7-§8: d on the discounted cost
     cost_gamma: float = Field(0.99, gt=0, le=1)
     cost_gae_lambda: float = Field(0.95, ge=0, le=1)
     lagrange: LagrangeConfig = LagrangeConfig()

@@ -1,6 +1,6 @@
 """SAC (Haarnoja et al. 2018) on torchrl's ``SACLoss``: twin Q, Polyak targets, learned alpha.
 
-SPEC.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.99, 2x64 hidden.
+docs/model.md §8 / paper Table 4: actor lr 1e-4, critic lr 3e-4, batch 256, gamma 0.99, 2x64 hidden.
 
 ``update(batch)`` takes a replay sample of shape ``[N]`` with
 ``"observation"``, ``"action"``, ``("next", "observation")``, ``("next", "reward")``,

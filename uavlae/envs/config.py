@@ -1,4 +1,4 @@
-"""Validated physical parameters of the world (SPEC.md §1-§7).
+"""Validated physical parameters of the world (docs/model.md §1-§7).
 
 Every number of the model lives here with its SPEC default; the Hydra group ``conf/env/``
 mirrors this model one-to-one. Validation is strict: unknown keys, NaN, negative sizes,

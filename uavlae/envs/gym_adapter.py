@@ -50,7 +50,7 @@ class UAVGymEnv(gym.Env):
     """One scenario of the paper's world per episode; numpy float32 in and out.
 
     Args:
-        cfg: an :class:`EnvConfig`, mapping or OmegaConf node (``None``: SPEC.md defaults).
+        cfg: an :class:`EnvConfig`, mapping or OmegaConf node (``None``: docs/model.md defaults).
         scenario: a fixed ``Scenario`` for every reset; ``None`` samples a new one per reset
             (from the env's generator, like ``UAVEnv``).
         render_mode: ``None`` or ``"rgb_array"``.

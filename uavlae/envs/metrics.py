@@ -1,11 +1,11 @@
-"""Episode metrics of the paper (SPEC.md §5): per-episode records and their aggregates.
+"""Episode metrics of the paper (docs/model.md §5): per-episode records and their aggregates.
 
 Three layers, each usable alone:
 
 * :class:`EpisodeTracker` — a pure batched accumulator. Feed it every step's ``"next"``
   tensordict of :class:`~uavlae.envs.uav_env.UAVEnv` (events, reward terms, state, done);
   whenever a row is done it emits one record for that row's episode and starts afresh.
-* :class:`EpisodeMetrics` — the same tracker as a TorchRL ``Transform`` (STYLE rule 4), so any
+* :class:`EpisodeMetrics` — the same tracker as a TorchRL ``Transform`` (docs/style.md rule 4), so any
   rollout or collector over ``TransformedEnv(UAVEnv(...), EpisodeMetrics(cfg))`` is measured,
   partial resets included. It changes no data.
 * :func:`aggregate` — DCR, CR, SLR, RVR, ECR and the means over a set of records;

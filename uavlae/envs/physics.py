@@ -1,4 +1,4 @@
-"""The world's physics as pure, batched tensor functions (SPEC.md §2-§7).
+"""The world's physics as pure, batched tensor functions (docs/model.md §2-§7).
 
 Every function accepts any leading batch shape ``...``, runs on any device and float dtype,
 never loops over batch elements or entities and never syncs with the host. Padded entities

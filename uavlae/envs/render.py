@@ -98,7 +98,7 @@ def draw_scenario(
         trajectories: one ``[T, 2]`` array, a ``[T, N, 2]`` array, or a list of ``[T_i, 2]``.
         path: where to write the PNG (parent folders are created).
         title: the axes title.
-        cfg: the env config (area size, TA, LA, data range); default SPEC.md's.
+        cfg: the env config (area size, TA, LA, data range); default docs/model.md's.
         labels: one legend label per trajectory.
     """
     cfg = make_env_config(cfg)

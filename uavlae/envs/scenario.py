@@ -1,4 +1,4 @@
-"""Scenarios: batched sampling, validity checks and a file format (SPEC.md §1).
+"""Scenarios: batched sampling, validity checks and a file format (docs/model.md §1).
 
 A batched scenario is a :class:`TensorDict` of batch size ``[B]`` laid out as in
 ``docs/env_contract.md``. :func:`sample_scenarios` draws valid ones in batch:

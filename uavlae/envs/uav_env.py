@@ -35,7 +35,7 @@ class UAVEnv(EnvBase):
 
     Args:
         cfg: an :class:`EnvConfig`, a mapping or an OmegaConf node (validated); ``None`` gives
-            SPEC.md's defaults.
+            docs/model.md's defaults.
         batch_size: ``[B]``, the number of scenarios stepped together.
         device: where the tensors live.
         seed: seeds the env's own ``torch.Generator`` (scenario sampling, OU motion, ties).

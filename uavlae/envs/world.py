@@ -1,4 +1,4 @@
-"""One slot of the world as a pure function of tensors (SPEC.md §2-§7).
+"""One slot of the world as a pure function of tensors (docs/model.md §2-§7).
 
 ``world_step`` takes the raw state (a dict of tensors with leading batch shape ``[B]``), the
 action and a ``torch.Generator`` and returns the next state, the events, every reward term,

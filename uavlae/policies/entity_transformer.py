@@ -1,7 +1,7 @@
 """Attention over the entities of one slot: the network of the ``wang`` baseline.
 
 After Wang et al. 2023 (BIT-MCS DRL-UCS-AoI-Threshold), reduced to our single DCU. The flat
-observation (SPEC.md §6, :class:`uavlae.envs.world.ObservationLayout`) is cut back into one token
+observation (docs/model.md §6, :class:`uavlae.envs.world.ObservationLayout`) is cut back into one token
 per entity, each with its own input projection and a learned type embedding:
 
 ==========  ========================================================  ==================

@@ -1,4 +1,4 @@
-"""The paper's greedy heuristic (§6.3, after sar-path-planning; SPEC.md §8 "Heuristic (greedy)").
+"""The paper's greedy heuristic (§6.3, after sar-path-planning; docs/model.md §8 "Heuristic (greedy)").
 
 What the DCU may use: the static map (every BZ, NFZ and RZ rectangle, as in its observation),
 every GE's position and remaining data, its own position, energy and slot count, and the OUs
@@ -13,7 +13,7 @@ The rules, applied every slot in this order:
 2. Head home (latched for the rest of the episode) when the slots left only suffice for the
    return, ``t_max - step <= home_time_factor * ceil(d_LA / (v_max t_fly)) + home_time_reserve``,
    or the energy left only suffices for it, ``E <= home_energy_factor * E_min(d_LA) +
-   home_energy_reserve`` (E_min of SPEC.md §7 r8). With SPEC's numbers the energy rule never
+   home_energy_reserve`` (E_min of docs/model.md §7 r8). With SPEC's numbers the energy rule never
    binds (a mission uses at most ~337 kJ of 800 kJ), so the time rule is the one that acts.
 3. Desired velocity: straight at the target at v_max, shortened so the step ends on it (on a GE
    it then hovers until the GE is served; on the LA centre it stops, which lands).

@@ -2,7 +2,7 @@
 
 The paper's heuristic is greedy (:mod:`uavlae.policies.greedy`); this one plans shortest paths
 around BZ/NFZ with energy and time budgets, a stronger baseline reported under its own name
-(SPEC.md §8), which can also stand in for the LLM (``+exp=sac_heuristic_planner``, the LLM's
+(docs/model.md §8), which can also stand in for the LLM (``+exp=sac_heuristic_planner``, the LLM's
 fallback with ``heuristic_kind: planner``).
 It reads the env's raw ``("state", NAME)`` entries (docs/env_contract.md), uses only what the
 DCU may know (the static map, GE data, its own energy, and OUs within the perception radius)

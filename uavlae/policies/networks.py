@@ -1,4 +1,4 @@
-"""Actor and critic factories shared by the learners (SPEC.md §8: 2 hidden layers of 64).
+"""Actor and critic factories shared by the learners (docs/model.md §8: 2 hidden layers of 64).
 
 Every factory takes plain sizes and an action spec, so the env, the tests and the learners
 build the same modules. Keys follow docs/env_contract.md and torchrl.objectives' defaults:

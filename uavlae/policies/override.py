@@ -1,4 +1,4 @@
-"""The override policy (SPEC.md §8, SAC+LLM / SAC+Heuristic / fixed-probability LLM).
+"""The override policy (docs/model.md §8, SAC+LLM / SAC+Heuristic / fixed-probability LLM).
 
 :class:`OverridePolicy` wraps any acting module (the SAC actor, a random policy) with an
 *advisor*. Per step and per batch row it decides whether the advisor acts (the *trigger*),
