@@ -9,8 +9,8 @@ export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 export WANDB_MODE ?= offline
 
-# The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run to a few
-# minutes; `make run RUN_ARGS=` trains with the full budget of uavlae/conf/trainer/default.yaml.
+# The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run short (1024
+# frames); `make run RUN_ARGS=` trains with the full budget of uavlae/conf/trainer/default.yaml.
 RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8
 
 .PHONY: setup run demo test test-slow bench bench-env bench-llm bench-sac clean
@@ -81,8 +81,9 @@ bench-llm-breakdown: $(STAMP)
 # What each advisor's answer is worth on 200 saved triggered states, scored by the env's physics
 # -> benchmarks/advice_quality.json and .md: every advisor on all 200 states, then on the first 40
 # the prompt variants that tell what the gap to llm_verbose is and what the example answer does,
-# and the paper's ablations (the LLM runs take 10-35 min on one core each;
-# ADVICE_ARGS="--advisors actor --actor FILE.pt2" scores a trained actor on the same states)
+# and the paper's ablations (the LLM variants take most of the time: benchmarks/advice_quality.json
+# records each one's wall clock; ADVICE_ARGS="--advisors actor --actor FILE.pt2" scores a trained
+# actor on the same states)
 .PHONY: bench-advice
 ADVICE_ARGS ?= --advisors heuristic hover random llm llm_verbose llm_paper_example
 bench-advice: $(STAMP)
@@ -119,9 +120,9 @@ clean:
 # Hydra multirun sweeps (uavlae/conf/sweep/) at a profile's size (uavlae/conf/profile/), into runs/<profile>/,
 # then one report (uavlae/experiments/README.md). Every sweep reuses what its folder holds: a killed
 # `make quick` run again resumes its unfinished runs and skips the finished ones.
-#   make quick                     # this 2-core machine, the non-LLM figures (about 3 h; see the README there)
-#   make quick-sens-landed         # Figs. 11-12 again with PPO where it lands (about 1 h more)
-#   make quick-llm                 # the LLM figures at the quick size (hours per run: the local LLM's speed)
+#   make quick                     # a 2-core machine's size, the non-LLM figures (benchmarks/quick_profile_fps.json: its cost)
+#   make quick-sens-landed         # Figs. 11-12 again with PPO where it lands
+#   make quick-llm                 # the LLM figures at the quick size (the local LLM's speed sets their length)
 #   make paper LAUNCHER=slurm      # the paper's size, on a cluster
 #   make experiments-report PROFILE=quick
 PROFILE ?= quick
@@ -162,7 +163,7 @@ experiments-sensitivity: $(STAMP)
 LLM_ALONE_ARGS ?=
 LLM_ALONE ?= 1
 # LLM_ALONE_SHARDS=N: N jobs of the sweep fly the LLM alone side by side into its one run folder,
-# each its own scenarios and LLM server (uavlae/llm_alone.py): both cores here, an array on a cluster
+# each its own scenarios and LLM server (uavlae/llm_alone.py): one a core, or an array on a cluster
 LLM_ALONE_SHARDS ?= 1
 LLM_ALONE_SHARD_ARGS = $(if $(filter-out 1,$(LLM_ALONE_SHARDS)),trainer.eval_shards=$(LLM_ALONE_SHARDS) \
 	trainer.eval_shard=$(shell seq -s, 0 $$(($(LLM_ALONE_SHARDS) - 1))))
@@ -191,7 +192,6 @@ experiments-llm-scenarios: $(STAMP)
 # The baselines at one equal frame budget: theile and wang beside sac, ppo and cpo (and random)
 # on the quick profile's world and evaluation set (results/eval_set_32.json), one seed, 102,400
 # frames each (50 of PPO's 2048-frame batches), evaluated every 25,600 -> results/budget/
-# (theile, the slowest learner per frame, sets the wall clock)
 BUDGET_FRAMES ?= 102400
 BUDGET_METHODS ?= theile,wang,sac,ppo,cpo,random
 .PHONY: baselines-budget
@@ -238,11 +238,11 @@ QUICK_SENS_GRIDS := \
 QUICK_SENS := PROFILE=quick_sensitivity EXP_ROOT=runs/quick SENS_EXP=sac SENS_SEEDS=0,1 $(QUICK_SENS_GRIDS)
 # ... and, with `make quick-sens-landed`, again with PPO at the quick profile's whole 400k frames,
 # where it lands (SLR 0.89 in the train sweep): the sensitivity of a policy that has learned,
-# beside SAC's early in learning (SAC lands only near 400k frames, at about 30 min a run, 13 h
-# for these 26 runs). About 1.8 core-hours (benchmarks/quick_profile_fps.json), so it is not a
-# step of `make quick`, which keeps within 3 h on two cores. The batch-size axis is left out: it
-# sweeps the replay sample (trainer.batch_size), which PPO does not have (its minibatch is
-# algo.minibatch_size).
+# beside SAC's early in learning (SAC lands only near 400k frames, too long a run to sweep).
+# Its cost is in benchmarks/quick_profile_fps.json (quick_sens_landed); it is not a step of
+# `make quick`, whose size that file derives. The batch-size axis is left
+# out: it sweeps the replay sample (trainer.batch_size), which PPO does not have (its minibatch
+# is algo.minibatch_size).
 QUICK_SENS_LANDED := PROFILE=quick EXP_ROOT=runs/quick SENS_EXP=ppo SENS_SEEDS=0,1 \
 	SENSITIVITY="actor_lr critic_lr r1 r2 r5 r8" $(QUICK_SENS_GRIDS)
 # QUICK_METHODS=sac,ppo,... trains and evaluates only those methods (default: every method of the sweeps)
@@ -261,19 +261,19 @@ quick-sens-landed: $(STAMP)
 
 # The LLM methods at the quick size. SAC+LLM in the train sweep: the profile's 3 seeds and
 # 400k frames, like every learner there (so it joins Fig. 3, the learned test and Figs. 5-10 on
-# equal terms), with a budget of 500 LLM rows a run (the actor acts once it is spent; a row costs
-# about 1-1.5 s here, so the LLM adds about 10 minutes to a run). The sweeps of Figs. 13-14 and
-# the fp variants: 50,176 frames (49 batches: the frames of the quick SAC runs' first
-# evaluation, so the report puts each beside plain SAC at equal frames) and 100 LLM rows, a few
-# minutes a run, the profile's 3 seeds. The fp variants are not in the scenario sweeps (their
-# actors trained for an eighth of the others' frames).
+# equal terms), with a budget of 500 LLM rows a run (the actor acts once it is spent; what a row
+# costs is in benchmarks/llm_throughput.json). The sweeps of Figs. 13-14 and the fp variants:
+# 50,176 frames (49 batches: the frames of the quick SAC runs' first evaluation, so the report
+# puts each beside plain SAC at equal frames) and 100 LLM rows a run, the profile's 3 seeds. The
+# fp variants are not in the scenario sweeps (their actors trained for an eighth of the others'
+# frames).
 QUICK_LLM_TRAIN_ARGS ?= trainer.compile_env=false advisor.max_calls=500
 QUICK_LLM_ARGS ?= trainer.total_frames=50000 trainer.compile_env=false advisor.max_calls=100
 # The LLM alone at the quick size: seed 0 (it does not depend on the seed), one scenario a chunk
 # (chunk k's env draws its OU turns from eval_seed + k), in two shards (one a core, each with its
-# own one-thread LLM server), and QUICK_LLM_ALONE_BUDGET decisions an invocation of each: an
-# episode that does not land is 1000 decisions, 26-45 minutes on one core here (the host's speed
-# varies), so the 32-scenario set is 7-12 h on two. Each `make quick-llm` scores the next scenarios; the report
+# own one-thread LLM server), and QUICK_LLM_ALONE_BUDGET decisions an invocation of each (an
+# episode that does not land is 1000 decisions; results/quick/llm_alone_episodes.md records what
+# the set cost). Each `make quick-llm` scores the next scenarios; the report
 # puts the scored ones beside every method's episodes on the same scenarios (llm_alone table),
 # and results/quick/llm_alone_episodes.md gives each episode, the cost, and the heuristic flown with the
 # same chunks and seeds.
@@ -288,8 +288,8 @@ quick-llm: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.llm_alone_table runs/quick/train/llm/seed0 --out results/quick/llm_alone_episodes --command "make quick-llm"
 
 # The LLM alone at the paper's size: seed 0 (it does not depend on the seed), one scenario a
-# chunk, in PAPER_LLM_ALONE_SHARDS jobs: 100 scenarios of up to 1000 decisions at 1-4 s each
-# (the local model on one CPU thread) are 30-110 process-hours, 2-6 h a job
+# chunk, in PAPER_LLM_ALONE_SHARDS jobs: 100 scenarios of up to 1000 decisions each, 100,000
+# decisions at most, shared among the jobs
 PAPER_LLM_ALONE_SHARDS ?= 20
 paper: $(STAMP)
 	$(MAKE) experiments-train PROFILE=paper
@@ -301,8 +301,8 @@ paper: $(STAMP)
 
 # Does SAC learn in SPEC's world at the paper's budget? One seed, 0.25 gradient steps a frame,
 # B = 64, the compiled env, 4M frames or the paper's 4000 episodes, whichever ends first (at
-# least 1M frames: the episodes end at T_max = 1000 steps at the latest). One core for hours;
-# re-running the target resumes it from its last checkpoint.
+# least 1M frames: the episodes end at T_max = 1000 steps at the latest). One core, a long run
+# (results/long/ records its wall clock); re-running the target resumes it from its last checkpoint.
 LONG_ROOT ?= runs/long
 # LONG_FRAMES=1000000 stops at 1M frames (a run's budget is part of its identity: a run
 # made with one budget is not resumed under another)

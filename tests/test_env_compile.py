@@ -15,7 +15,7 @@ def test_compile_step_is_off_by_default_and_not_torchrls_compile():
     assert env.__dict__.get("_compiled_step_and_maybe_reset") is None
 
 
-# the first compile takes about 30 s on a loaded 2-core CPU (cold Inductor cache), then a few seconds
+# the first compile is the slow part (a cold Inductor cache); the later ones reuse it
 def test_compiled_step_matches_eager():
     b, steps = 8, 12
     eager = UAVEnv(batch_size=[b], seed=3)

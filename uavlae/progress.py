@@ -5,7 +5,7 @@ frames of every env step, so a batch of 1024 frames no longer sits at 0 until it
 Anywhere else (a sweep's job, a launcher's log, ``make long-sac > file``, or the bar turned off)
 a log line every ``trainer.progress_every_s`` seconds says how far the run is::
 
-    sac seed0: 51,200 / 400,000 frames (12.8%), 1,162 frames/s, ETA 5m00s; last evaluation at 50,176: DCR 0.297 CR 0.125 SLR 0.000
+    sac seed0: 51,200 / 400,000 frames (12.8%), 1,000 frames/s, ETA 5m49s; last evaluation at 50,176: DCR 0.297 CR 0.125 SLR 0.000
 
 frames/s and the ETA count this process's wall clock since it started (evaluations included,
 since they take the same time again on the way to the end); a resumed run counts from where it
