@@ -1,1 +1,4 @@
-"""The paper's experiments: the sweeps' aggregation (report.py) and the heuristics' table (heuristics_table.py)."""
+"""The paper's study on top of the library: run records (records.py), the sweeps' aggregation and
+report (report.py, ``uavlae-report``), the heuristics' table, the LLM alone's table and the advice
+study. It imports uavlae; no other module of uavlae imports it (tests/test_package.py), so the
+library never depends on the study. README.md here says how the sweeps run."""
