@@ -637,7 +637,9 @@ def test_evaluate_honours_env_overrides(tmp_path):
 
 
 def _sweep(*args: str, timeout: int = 400, wandb: str = "disabled") -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "UAVLAE_NUM_THREADS": "1", "WANDB_MODE": wandb, "WANDB_SILENT": "true"}
+    # without WANDB_SERVICE: each job starts its own wandb service, not this test session's (tests/test_package.py)
+    env = {k: v for k, v in os.environ.items() if k != "WANDB_SERVICE"}
+    env.update(OMP_NUM_THREADS="1", UAVLAE_NUM_THREADS="1", WANDB_MODE=wandb, WANDB_SILENT="true")
     res = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=timeout)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return res
@@ -748,13 +750,17 @@ def test_wandb_group_name_and_tags_by_hand():
         "a" * 64, "method:ppo", "seed:1", "sweep:scenario_n_ou", "point:n_ou=3", "profile:quick", "kind:evaluate"]
 
 
-def test_wandb_runs_are_grouped_by_invocation_named_and_tagged_with_trajectory_images(tmp_path):
+def test_wandb_runs_are_grouped_by_invocation_named_and_tagged_with_trajectory_images(tmp_path, monkeypatch):
     from uavlae.factories import make_logger
 
     cfg = _cfg("+sweep=train", "+profile=quick", "+exp=sac", "seed=1", "logger.wandb.mode=offline")
-    logger = make_logger(cfg, tmp_path, "sac-test", {"name": "sac"})
+    monkeypatch.chdir(tmp_path)
+    # a relative run folder (the default runs/<name>/<time>) reaches wandb resolved: a wandb service
+    # shared with another process would resolve it against that process's working directory
+    logger = make_logger(cfg, Path("."), "sac-test", {"name": "sac"})
     try:
         run = logger.loggers["wandb"].experiment
+        assert Path(run.dir).is_absolute() and Path(run.dir).is_relative_to(tmp_path.resolve())
         assert run.group == "quick:runs/quick" and run.name == "sac seed1"  # the profile and its sweeps' root
         assert set(run.tags) == {"method:sac", "seed:1", "sweep:train", "point:default", "profile:quick", "kind:train"}
         import matplotlib

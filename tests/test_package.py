@@ -31,8 +31,10 @@ TINY = [
 
 
 def _run(cmd: list[str], cwd: Path, timeout: int = 300) -> subprocess.CompletedProcess:
-    # no PYTHONPATH: nothing of the checkout may leak into the installed package's interpreter
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # no PYTHONPATH: nothing of the checkout may leak into the installed package's interpreter; no
+    # WANDB_SERVICE: an earlier in-process wandb run of this test session leaves its service's
+    # address there, and a child that joins that service instead of starting its own may write no run file
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "WANDB_SERVICE")}
     env.update(OMP_NUM_THREADS="1", UAVLAE_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true")
     res = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
     assert res.returncode == 0, f"{cmd}\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
@@ -97,7 +99,7 @@ def test_installed_package_trains_from_an_empty_folder_evaluates_and_reports(ins
     meta = json.loads((run_dir / "meta.json").read_text())
     assert meta["packages"]["uavlae"] == VERSION
     assert meta["git"] == {"commit": None, "dirty": None}  # no checkout holds the installed package
-    assert list((run_dir / "wandb").glob("offline-run-*/run-*.wandb"))
+    assert list((run_dir / "wandb").glob("offline-run-*/run-*.wandb")), sorted(map(str, run_dir.rglob("*")))
     # the console scripts: evaluate the run's checkpoint, export its actor, fly it, report the folder
     _run([str(bin_ / "uavlae-evaluate"), f"checkpoint={run_dir}", "trainer.eval_episodes=2", "trainer.eval_max_steps=10",
           "trainer.eval_plots=0"], cwd=work)

@@ -490,7 +490,9 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
         loggers["wandb"] = WandbLogger(
             exp_name=wandb_name(ex.method, int(cfg.seed), ex),
             offline=lc.wandb.mode == "offline",
-            save_dir=str(run_dir),
+            # absolute: a wandb service this process joins (WANDB_SERVICE, inherited from a parent
+            # that runs wandb) resolves a relative folder against its own working directory
+            save_dir=str(Path(run_dir).resolve()),
             id=run_id,
             project=lc.wandb.project,
             entity=lc.wandb.entity,

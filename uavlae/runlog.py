@@ -129,7 +129,7 @@ def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any]) -> None:
     logger = WandbLogger(
         exp_name=wandb_name(method, seed, ex),
         offline=lc.wandb.mode == "offline",
-        save_dir=str(out_dir),
+        save_dir=str(Path(out_dir).resolve()),  # absolute, as make_logger's: a joined service has its own cwd
         id=f"eval-{method}-{uuid.uuid4().hex[:10]}"[:64],
         project=lc.wandb.project,
         entity=lc.wandb.entity,
