@@ -141,8 +141,8 @@ def test_records_restore_and_reuse_on_real_runs(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path / "here")
     root, out = Path("runs/advice"), tmp_path / "records"
     eval_set = tmp_path / "eval_set.json"
-    common = [*TINY, "+sweep=advice", f"experiment.root={root}", f"trainer.eval_set={eval_set}",
-              "env=shaped_geodesic", "trainer.eval_with_advisor=true"]
+    common = [*TINY, "+sweep=advice", "experiment.root=runs", f"trainer.eval_set={eval_set}",
+              "env=shaped_geodesic", "trainer.eval_with_advisor=true", "trainer.keep_replay_at_end=true"]
     cells = [("+exp=sac", "experiment.point=aid_override"),
              ("+exp=sac_heuristic", "experiment.point=aid_tune", "algo.clone_weight=0.4",
               "algo.clone_decay_frames=128", "advisor.phase_out_frames=64", "experiment.method=sac_heuristic_w0.4")]
