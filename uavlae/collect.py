@@ -227,8 +227,7 @@ class UAVCollector:
 
     def override_stats(self, reset: bool = False) -> dict[str, float]:
         """The override policy's counters (trigger and override rates, sources, LLM counters)."""
-        snap = getattr(self.policy, "snapshot", None)
-        return dict(snap(reset=reset)) if snap is not None else {}
+        return dict(self.policy.snapshot(reset=reset)) if isinstance(self.policy, OverridePolicy) else {}
 
     # ------------------------------------------------------------------ resume
     def state_dict(self) -> dict[str, Any]:
@@ -274,9 +273,8 @@ class UAVCollector:
 
     def shutdown(self) -> None:
         """Close the policy's advisor (its client and any local server it started)."""
-        close = getattr(self.policy, "close", None)
-        if close is not None:
-            close()
+        if isinstance(self.policy, OverridePolicy):
+            self.policy.close()
 
 
 def _gather(td: TensorDictBase, index: torch.Tensor, batch_size: torch.Size) -> TensorDict:

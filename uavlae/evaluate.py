@@ -354,9 +354,8 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     try:
         flight = evaluation.fly(policy, t.out, title=f"{t.name} @ {t.frames} frames")
     finally:
-        close = getattr(policy, "close", None)
-        if close is not None:
-            close()
+        if isinstance(policy, OverridePolicy):
+            policy.close()  # the LLM's client, and the local server it started
     _record(cfg, t, spec, set_file, len(scenarios), flight, time.perf_counter() - t0)
     log.info("%s\n%s", t.out, format_metrics(flight.metrics))
     return flight.metrics

@@ -67,6 +67,7 @@ from uavlae.factories import (
 )
 from uavlae.files import atomic_write, train_eval_dir
 from uavlae.lifecycle import RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, flatten_keys, lock_name, plan
+from uavlae.policies.override import OverridePolicy
 from uavlae.policies.random import UniformRandomPolicy
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
@@ -178,7 +179,7 @@ class Updates:
         self.counters["updates"] += n
         t1 = time.perf_counter()
         self.seconds += t1 - t0
-        pending = getattr(in_flight, "pending", None)
+        pending = in_flight.pending if in_flight is not None else None
         if pending is not None and pending.handle is not None:
             done = pending.done_at
             self.overlap_seconds += max(0.0, min(t1, done if done is not None else t1) - t0)
@@ -529,9 +530,8 @@ def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, ru
         flight = evaluation.fly(controller, out, title=str(cfg.name))
         totals = controller.run_totals() if cfg.controller == "llm" else None
     finally:
-        close = getattr(controller, "close", None)
-        if close is not None:
-            close()
+        if isinstance(controller, OverridePolicy):
+            controller.close()  # the LLM's client, and the local server it started
     metrics = {**_prefixed("eval", flight.metrics), **_prefixed("override", flight.stats),
                "time/eval_s": time.perf_counter() - t0}
     la = flight.llm_alone
