@@ -360,7 +360,8 @@ bench-trigger: $(STAMP)
 # (finished runs are kept, killed ones resume from their checkpoint): run the same command again.
 # The cloning weight is tuned on seeds apart from the verdict seeds (ADVICE_TUNE_SEEDS), then
 # read back by `uavlae.experiments.advice choose`. ADVICE_JOBS: runs side by side (one per core).
-ADVICE_ROOT ?= runs/advice
+ADVICE_EXP_ROOT ?= runs
+ADVICE_ROOT = $(ADVICE_EXP_ROOT)/advice
 ADVICE_JOBS ?= 1
 ADVICE_SEEDS ?= 0,1,2,3,4
 ADVICE_FEW_SEEDS ?= 0,1,2
@@ -368,7 +369,7 @@ ADVICE_TUNE_SEEDS ?= 100,101
 ADVICE_TUNE_WEIGHTS ?= 0.1,0.4,1.6
 ADVICE_LLM_CALLS ?= 3000
 ADVICE_LLM_EVAL_CALLS ?= 500
-ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_ROOT) hydra/launcher=local \
+ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_EXP_ROOT) hydra/launcher=local \
 	hydra.launcher.n_jobs=$(ADVICE_JOBS)
 # the replay buffer holds every frame of a run either way; sized to the run, its checkpoints are smaller
 ADVICE_AID = env=shaped_geodesic trainer.total_frames=400000 trainer.replay_capacity=400000

@@ -99,7 +99,7 @@ def main() -> None:
 
     from uavlae.collect import _UniformRandom
     from uavlae.envs import make_env_config
-    from uavlae.factories import CONF_DIR, behaviour_actor, git_info, make_env, make_learner
+    from uavlae.factories import CONF_DIR, git_info, make_env, make_learner
     from uavlae.files import dump_json
     from uavlae.machine import describe_machine
     from uavlae.policies.heuristic import HeuristicPolicy
@@ -117,7 +117,7 @@ def main() -> None:
     heuristic = HeuristicPolicy(env_cfg, OmegaConf.to_container(OmegaConf.load(conf / "advisor" / "heuristic.yaml")))
     policies = {
         "heuristic": heuristic,
-        "untrained_sac_actor": behaviour_actor(learner),
+        "untrained_sac_actor": learner.behaviour,
         "uniform_random": _UniformRandom(env.action_spec, generator),
     }
     # the override's own trigger (uavlae/conf/advisor/llm.yaml, the env's perception radius for OUs)

@@ -512,7 +512,7 @@ def test_report_cli_names_a_missing_dir(tmp_path):
 
 
 def test_config_differences_by_hand():
-    from uavlae.evaluate import config_differences
+    from uavlae.lifecycle import config_differences
 
     want = {"env": {"t_max": 5, "maps": {"n": 2}}, "seed": 0, "lr": 1e-3}
     have = {"env": {"t_max": 7}, "seed": 0, "old": 1}
@@ -566,8 +566,11 @@ def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch)
     assert resumed["frames"] == 128 and resumed["eval/DCR"] == pytest.approx(first["eval/DCR"])
     assert resumed["actor_param_sum"] == pytest.approx(first["actor_param_sum"], rel=1e-6)
     assert run(_cfg(*args)) == resumed  # finished now: kept as it is
-    with pytest.raises(ValueError, match=r"holds a run of another config .*trainer.total_frames"):
-        run(_cfg(*args[:-len(TINY)], *TINY[1:], "trainer.total_frames=256"))
+    # a larger frame budget extends the run from its final checkpoint (it kept its buffer)
+    extended = run(_cfg(*args[:-len(TINY)], *TINY[1:], "trainer.total_frames=256"))
+    assert extended["frames"] == 256 and extended["updates"] > resumed["updates"]
+    with pytest.raises(ValueError, match=r"holds a run of another config.*algo.actor_lr: recorded 0.0001, asked 0.001"):
+        run(_cfg(*args, "algo.actor_lr=1e-3"))
 
 
 def test_reuse_keeps_a_run_made_before_a_setting_existed(tmp_path, monkeypatch):
@@ -582,7 +585,7 @@ def test_reuse_keeps_a_run_made_before_a_setting_existed(tmp_path, monkeypatch):
     assert run(_cfg(*args)) == first  # finished: kept, not refused
     saved["env"]["t_max"] = 7  # a setting the saved run did have, with another value: refused
     (tmp_path / "r" / "config.json").write_text(json.dumps(saved))
-    with pytest.raises(ValueError, match=r"holds a run of another config .*env.t_max"):
+    with pytest.raises(ValueError, match=r"holds a run of another config.*env.t_max: recorded 7, asked 1000"):
         run(_cfg(*args))
 
 

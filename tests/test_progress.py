@@ -6,10 +6,6 @@ from __future__ import annotations
 import io
 import logging
 
-import torch
-
-from uavlae.collect import UAVCollector
-from uavlae.envs import UAVEnv
 from uavlae.progress import Progress, format_duration
 
 
@@ -58,17 +54,27 @@ def test_lines_at_the_stated_interval_with_rate_eta_and_the_last_evaluation(capl
     assert len(caplog.messages) == 2  # every_s=0: no line at all
 
 
-def test_the_bar_moves_with_every_env_step_inside_a_batch():
-    env = UAVEnv(batch_size=[4], seed=0)
+def test_a_bar_on_a_terminal_moves_with_each_update_and_shows_the_last_evaluation():
     term = Terminal()
     p = Progress(64, name="t", bar=True, stream=term)
     seen = []
-    collector = UAVCollector(env, lambda td: td.set("action", torch.zeros(4, 2)), frames_per_batch=32, total_frames=64,
-                             on_frames=lambda n: (p.advance(n), seen.append(p.bar.n)))
-    batch = next(iter(collector))
-    assert batch.batch_size == torch.Size([4, 8])
-    assert seen == [4, 8, 12, 16, 20, 24, 28, 32]  # 8 steps of 4 frames, not one jump at the batch's end
+    for _ in range(8):  # the training loop's calls, one per env step of 4 rows
+        p.update(4)
+        seen.append(p.bar.n)
+    assert seen == [4, 8, 12, 16, 20, 24, 28, 32]
     p.batch_done(32, {"DCR": 0.5})
     assert p.bar.postfix.endswith("DCR=0.500")
     p.close()
     assert "32.0/64.0" in term.getvalue()  # the bar as drawn at the end of the batch
+
+
+def test_a_training_run_reports_within_its_batches(tmp_path, caplog):
+    """Off-policy training: the loop advances the progress by every env step, so with a line per
+    step the frames of a 32-frame batch show 4 at a time."""
+    from tests.test_train import _run
+
+    with caplog.at_level(logging.INFO, logger="uavlae.progress"):
+        final = _run("sac", tmp_path / "r", "trainer.progress_every_s=0.000001", "trainer.eval_every_frames=0")
+    frames = [int(m.split(": ", 1)[1].split(" / ")[0].replace(",", "")) for m in caplog.messages if "sac seed0: " in m]
+    assert frames[:9] == [4, 8, 12, 16, 20, 24, 28, 32, 36] and frames[-1] == final["frames"] == 128
+    assert "last evaluation at 128: DCR" in caplog.messages[-1]

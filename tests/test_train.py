@@ -85,7 +85,7 @@ def test_exp_trains_end_to_end(tmp_path, exp):
 
 
 def test_off_policy_schedule_is_per_env_step_and_the_overlap_changes_no_number(tmp_path):
-    from uavlae.train import format_summary
+    from uavlae.summary import format_summary
 
     # TINY: B = 4, 128 frames, warm-up 32 frames, utd 0.25, replay sample 16. A step owes
     # 0.25 * 4 = 1 gradient step once frames >= 32 (the 8th to the 32nd step: 25 steps), each
@@ -106,7 +106,7 @@ def test_off_policy_schedule_is_per_env_step_and_the_overlap_changes_no_number(t
 
 
 def test_closing_summary_names_the_baselines_and_the_pictures(tmp_path):
-    from uavlae.train import format_summary
+    from uavlae.summary import format_summary
 
     final = _run("sac", tmp_path / "s")
     for who in ("heuristic", "random"):
@@ -126,14 +126,14 @@ def test_compiled_env_and_sac_train_end_to_end(tmp_path, monkeypatch):
     # trainer.compile_env (training and evaluation envs) / algo.compile (of torchrl's SACLoss) through the whole loop
     import uavlae.train as tr
 
-    made, evaluators = [], []
-    real, real_evaluator = tr.make_env, tr.Evaluator
+    made, evaluations = [], []
+    real, real_evaluation = tr.make_env, tr.make_evaluation
     monkeypatch.setattr(tr, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
-    monkeypatch.setattr(tr, "Evaluator", lambda *a, **k: evaluators.append(real_evaluator(*a, **k)) or evaluators[-1])
+    monkeypatch.setattr(tr, "make_evaluation", lambda *a, **k: evaluations.append(real_evaluation(*a, **k)) or evaluations[-1])
     final = _run("sac", tmp_path / "c", "trainer.compile_env=true", "algo.loss_impl=torchrl", "algo.compile=true")
     _check_run_outputs(tmp_path / "c", final)
     assert final["updates"] > 0 and len(made) == 1 and made[0].compiled
-    assert len(evaluators) == 1 and evaluators[0].env.compiled  # the evaluation env too
+    assert len(evaluations) == 1 and evaluations[0].evaluator.env.compiled  # the evaluation env too
 
 
 @pytest.mark.parametrize("exp", ["heuristic", "heuristic_planner"])

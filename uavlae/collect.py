@@ -8,13 +8,12 @@ shape ``[B, T]`` (time last, as torchrl's collectors) holding what was executed:
 deliberately single-process: the LLM advisor's client, cache and local server stay in this
 process, and nothing of the policy is copied or pickled (see ``OverridePolicy.__deepcopy__``).
 
-Work of the caller's may run inside each step: ``between`` (the training loop's scheduled
-gradient steps) runs after the override policy has sent the step's advice requests and before
-the actor acts and the answers are awaited, so the updates overlap the requests in flight on the
-LLM server, and the actor that acts is the updated one; ``on_step`` receives every executed
-transition ``[B]`` (the loop extends its replay buffer with it). :attr:`UAVCollector.timing`
-sums the seconds spent in ``between`` and the part of them while requests were in flight
-(``overlap_s``: what the overlap saves against sending the requests after the updates).
+A step comes in two halves, so that the caller's work can run while the advice is in flight:
+:meth:`UAVCollector.begin_step` decides the triggered rows from the state alone and sends their
+advice requests; :meth:`UAVCollector.finish_step` lets the actor act (the updated actor, when the
+caller ran gradient steps in between), waits for the answers, merges them and steps the env,
+returning the executed transition ``[B]``. :meth:`UAVCollector.step` is both halves with nothing
+between them; :meth:`UAVCollector.rollout_batch` stacks ``T`` steps.
 
 ``override_abort`` rows (failed advice with ``fallback="end_episode"``, paper §5.3) get
 ``("next", "truncated")`` and ``("next", "done")`` set before the partial reset, so exactly
@@ -30,8 +29,8 @@ transitions; its ``state_dict()`` / ``load_state_dict()`` hold the stored data f
 from __future__ import annotations
 
 import contextlib
-import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -41,7 +40,7 @@ from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, Te
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from uavlae.envs.metrics import EpisodeTracker, aggregate
-from uavlae.policies.override import POLICY
+from uavlae.policies.override import POLICY, OverridePolicy, Pending
 
 NestedKey = str | tuple[str, ...]
 
@@ -55,6 +54,17 @@ TRANSITION_KEYS: tuple[NestedKey, ...] = (
 )
 
 __all__ = ["TRANSITION_KEYS", "UAVCollector", "UniformReplayBuffer", "make_replay_buffer"]
+
+
+@dataclass
+class StepHandle:
+    """A step between its two halves: the root it acts on, the override's pending advice
+    (None for a plain policy), whether the random warm-up acts, and what finish_step closes."""
+
+    td: TensorDictBase
+    pending: Pending | None
+    random: bool
+    stack: contextlib.ExitStack
 
 
 def _has_extra_state(module: Any) -> bool:
@@ -99,12 +109,6 @@ class UAVCollector:
         exploration_type: the policy acts under it (``RANDOM``: sampled actions).
         seed: seeds the random warm-up policy.
         max_episodes_per_row: passed to the episode tracker.
-        between: called once per step while the step's advice is in flight (with gradients
-            enabled; see the module docstring).
-        overlap: False calls ``between`` before the advice is sent instead (the same numbers:
-            the advisor never reads what ``between`` changes; a baseline for what the overlap buys).
-        on_step: called with every executed transition ``[B]`` (after ``keep_keys``).
-        on_frames: called with ``B`` after every env step (a progress bar that moves within a batch).
     """
 
     def __init__(
@@ -120,10 +124,6 @@ class UAVCollector:
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         seed: int = 0,
         max_episodes_per_row: int | None = None,
-        between: Callable[[], Any] | None = None,
-        overlap: bool = True,
-        on_step: Callable[[TensorDictBase], Any] | None = None,
-        on_frames: Callable[[int], Any] | None = None,
     ):
         if len(env.batch_size) != 1:
             raise ValueError(f"UAVCollector needs an env with batch_size [B], got {list(env.batch_size)}")
@@ -142,11 +142,6 @@ class UAVCollector:
         self.keep_keys = None if keep_keys is None else list(keep_keys)
         self.exploration_type = exploration_type
         self.tracker = EpisodeTracker(self.B, env.cfg, max_episodes_per_row=max_episodes_per_row, device=env.device)
-        self.between = between
-        self.overlap = bool(overlap)
-        self.on_step = on_step
-        self.on_frames = on_frames
-        self.timing = {"between_s": 0.0, "overlap_s": 0.0}
         self.frames = 0
         self.batches = 0
         self._td: TensorDictBase | None = None
@@ -156,48 +151,33 @@ class UAVCollector:
         self._td = self.env.reset()
         self.tracker.reset()
 
-    def _run_between(self) -> float:
-        """The caller's work; returns when it ended (time.perf_counter)."""
-        if self.between is not None:
-            t0 = time.perf_counter()
-            with torch.enable_grad():
-                self.between()
-            self.timing["between_s"] += time.perf_counter() - t0
-        return time.perf_counter()
-
-    def _act(self, td: TensorDictBase) -> TensorDictBase:
-        random = self.frames < self.init_random_frames
-        if not hasattr(self.policy, "begin"):  # not an OverridePolicy: the policy acts alone
-            self._run_between()
-            with set_exploration_type(self.exploration_type):
-                td = self.random_policy(td) if random else self.policy(td)
-            td.set("action_source", torch.full((self.B,), POLICY, dtype=torch.int64, device=td.device))
-            td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
-            return td
-        with contextlib.ExitStack() as stack:
-            if random:
-                stack.enter_context(self.policy.using_actor(self.random_policy))
-            if not self.overlap:
-                self._run_between()
-            with set_exploration_type(self.exploration_type):
-                pending = self.policy.begin(td)
-            if self.overlap:
-                began = time.perf_counter()
-                ended = self._run_between()
-                if pending.handle is not None and self.between is not None:
-                    # the part of the work done before the answers arrived (all of it if still in flight)
-                    done = pending.done_at
-                    self.timing["overlap_s"] += max(0.0, min(ended, done if done is not None else ended) - began)
-            with set_exploration_type(self.exploration_type):
-                td = self.policy.finish(td, pending)
-        return td
-
-    @torch.no_grad()
-    def step(self) -> TensorDictBase:
-        """One env step of every row: returns the transition ``[B]`` (with ``"next"``)."""
+    def begin_step(self) -> StepHandle:
+        """The first half of a step: the triggered rows' advice requests go out (the random
+        warm-up's actor acts for the first ``init_random_frames`` frames, the override on top)."""
         if self._td is None:
             self._reset()
-        td = self._act(self._td)
+        stack = contextlib.ExitStack()
+        random = self.frames < self.init_random_frames
+        if not isinstance(self.policy, OverridePolicy):  # a plain policy acts alone, in finish_step
+            return StepHandle(self._td, None, random, stack)
+        if random:
+            stack.enter_context(self.policy.using_actor(self.random_policy))
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            pending = self.policy.begin(self._td)
+        return StepHandle(self._td, pending, random, stack)
+
+    @torch.no_grad()
+    def finish_step(self, handle: StepHandle) -> TensorDictBase:
+        """The second half: the actor acts, the answers are merged, the env steps; returns the
+        executed transition ``[B]`` (with ``"next"``)."""
+        with handle.stack, set_exploration_type(self.exploration_type):
+            td = handle.td
+            if handle.pending is None:
+                td = self.random_policy(td) if handle.random else self.policy(td)
+                td.set("action_source", torch.full((self.B,), POLICY, dtype=torch.int64, device=td.device))
+                td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
+            else:
+                td = self.policy.finish(td, handle.pending)
         td = self.env.step(td)
         nxt = td.get("next")
         abort = td.get("override_abort").reshape(self.B, 1)
@@ -213,11 +193,11 @@ class UAVCollector:
         out = out.clone()
         self._td = self.env.maybe_reset(step_mdp(td, keep_other=False, exclude_action=True))
         self.frames += self.B
-        if self.on_step is not None:
-            self.on_step(out)
-        if self.on_frames is not None:
-            self.on_frames(self.B)
         return out
+
+    def step(self) -> TensorDictBase:
+        """One env step of every row: returns the transition ``[B]`` (with ``"next"``)."""
+        return self.finish_step(self.begin_step())
 
     def rollout_batch(self) -> TensorDictBase:
         """``T`` steps of every row stacked to ``[B, T]`` (time last)."""
@@ -247,8 +227,7 @@ class UAVCollector:
 
     def override_stats(self, reset: bool = False) -> dict[str, float]:
         """The override policy's counters (trigger and override rates, sources, LLM counters)."""
-        snap = getattr(self.policy, "snapshot", None)
-        return dict(snap(reset=reset)) if snap is not None else {}
+        return dict(self.policy.snapshot(reset=reset)) if isinstance(self.policy, OverridePolicy) else {}
 
     # ------------------------------------------------------------------ resume
     def state_dict(self) -> dict[str, Any]:
@@ -294,9 +273,8 @@ class UAVCollector:
 
     def shutdown(self) -> None:
         """Close the policy's advisor (its client and any local server it started)."""
-        close = getattr(self.policy, "close", None)
-        if close is not None:
-            close()
+        if isinstance(self.policy, OverridePolicy):
+            self.policy.close()
 
 
 def _gather(td: TensorDictBase, index: torch.Tensor, batch_size: torch.Size) -> TensorDict:
@@ -314,7 +292,36 @@ class UniformReplayBuffer(TensorDictReplayBuffer):
     and ``storage``. The result, ``"index"`` included, equals the stock sample exactly
     (``tests/test_collect.py``) at less than its cost per batch (docs/performance.md). With
     ``return_info``, another batch size, a transform, or storage other than a
-    ``LazyTensorStorage`` holding one TensorDict, the stock ``sample()`` answers."""
+    ``LazyTensorStorage`` holding one TensorDict, the stock ``sample()`` answers.
+
+    Its ``state_dict()`` holds the stored rows only, not the storage's whole capacity: a
+    buffer of 1M transitions filled to 1024 saves megabytes, not the 1.4 GB of its empty rows.
+    ``load_state_dict()`` writes them back through ``extend`` and restores the sampling
+    generator, so sampling continues exactly. A buffer that has wrapped around (full) saves
+    torchrl's own state."""
+
+    generator: torch.Generator | None = None  # the sampling generator (make_replay_buffer sets it)
+
+    def _filled_only(self) -> bool:
+        n = len(self)
+        return 0 < n < self.storage.max_size and self._gather_ok() and self.generator is not None
+
+    def state_dict(self) -> dict[str, Any]:
+        if not self._filled_only():
+            return super().state_dict()
+        rows = self.storage.get(slice(0, len(self))).clone()  # a copy: a view would save the whole storage
+        return {"filled_rows": rows.to_dict(), "n": len(rows), "generator": self.generator.get_state(),
+                "batch_size": self.batch_size}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if "filled_rows" not in state_dict:
+            super().load_state_dict(state_dict)
+            return
+        if len(self) or self.generator is None:
+            raise ValueError("a buffer's stored rows load into an empty buffer made by make_replay_buffer")
+        rows = TensorDict(state_dict["filled_rows"], batch_size=[int(state_dict["n"])])
+        self.extend(rows.exclude("index"))
+        self.generator.set_state(state_dict["generator"])
 
     def _gather_ok(self) -> bool:
         storage = self.storage
@@ -369,9 +376,9 @@ def make_replay_buffer(
     if seed is not None:
         generator = torch.Generator()
         generator.manual_seed(int(seed))
-    return UniformReplayBuffer(
-        storage=store, sampler=RandomSampler(), batch_size=int(batch_size), generator=generator
-    )
+    buffer = UniformReplayBuffer(storage=store, sampler=RandomSampler(), batch_size=int(batch_size), generator=generator)
+    buffer.generator = generator
+    return buffer
 
 
 def flatten_batch(batch: TensorDictBase) -> TensorDictBase:

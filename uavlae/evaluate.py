@@ -22,6 +22,7 @@ import os
 import sys
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +34,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.factories import CONF_DIR, without_hydra_output
+from uavlae.factories import CONF_DIR, make_controller, make_env, make_learner, run_metadata, without_hydra_output
 from uavlae.files import dump_json
 from uavlae.runlog import log_evaluation
+from uavlae.lifecycle import flatten_keys
+from uavlae.llm_alone import LLMAloneEvaluation
+from uavlae.policies.override import OverridePolicy
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +48,19 @@ def eval_set_path(run_dir: str | os.PathLike[str], eval_set: str | None) -> Path
     return Path(eval_set).expanduser() if eval_set else Path(run_dir) / "eval_set.json"
 
 
-def load_or_make_eval_set(env_cfg: EnvConfig, path: str | os.PathLike[str], n: int, seed: int) -> list[Scenario]:
-    """The scenarios at ``path``; when the file is absent, ``n`` scenarios sampled with ``seed``
-    (a generator of their own: the global RNGs are untouched) and saved there first."""
+def load_or_make_eval_set(env_cfg: EnvConfig, path: str | os.PathLike[str], n: int, seed: int,
+                          sample: bool = True) -> list[Scenario]:
+    """The scenarios at ``path``; when the file is absent and ``sample``, ``n`` scenarios
+    sampled with ``seed`` (a generator of their own: the global RNGs are untouched) and saved
+    there first (absent and not ``sample``: an error naming the path)."""
     path = Path(path)
+    if not path.is_file() and not sample:
+        raise FileNotFoundError(
+            f"trainer.eval_set={str(path)!r} does not exist; give an existing scenarios file, or set "
+            "trainer.sample_eval_set=true to sample one there (trainer.eval_episodes, trainer.eval_seed)"
+        )
     if path.is_file():
-        scenarios = load_scenarios(path)
+        scenarios = load_scenarios(path, env_cfg)
         if len(scenarios) != n:
             log.info("evaluation set %s has %d scenarios (trainer.eval_episodes=%d): using the file", path, len(scenarios), n)
         return scenarios
@@ -121,9 +132,79 @@ class Evaluator:
             )
 
 
-def deterministic_actor(learner: Any) -> Any:
-    """The learner's actor alone (no exploration noise, no override)."""
-    return learner.actor
+@dataclass
+class Flight:
+    """What one evaluation gives back: the paper's metrics and the rest of the aggregates, the
+    flying policy's own counters (the override's, the LLM's), and, for the LLM alone, its
+    progress and cost (``complete``, ``episodes_scored`` of ``episodes_total``, ``cost``)."""
+
+    metrics: dict[str, float]
+    stats: dict[str, Any] = field(default_factory=dict)
+    llm_alone: dict[str, Any] | None = None
+
+
+class Evaluation:
+    """The one evaluation path: a policy flies the evaluation set, all of it at once
+    (:class:`Evaluator`), or, for the LLM alone, chunk by chunk under a call budget and
+    resumable (:class:`uavlae.llm_alone.LLMAloneEvaluation`). Build it with
+    :func:`make_evaluation`; every entry point does (training, ``uavlae.evaluate``, the
+    LLM-alone table)."""
+
+    def __init__(self, evaluator: Evaluator, *, chunked: bool = False, chunk: int | None = None,
+                 budget: int | None = None, shard: int = 0, shards: int = 1,
+                 fingerprint: Mapping[str, Any] | None = None):
+        self.evaluator = evaluator
+        self.chunked = chunked
+        self.chunk, self.budget, self.shard, self.shards = chunk, budget, shard, shards
+        self.fingerprint = dict(fingerprint or {})
+
+    @property
+    def scenarios(self) -> list[Scenario]:
+        return self.evaluator.scenarios
+
+    def fly(self, policy: Any, out_dir: str | os.PathLike[str] | None, title: str = "") -> Flight:
+        """``policy`` flies the set; the records, aggregates and pictures go to ``out_dir``."""
+        override = isinstance(policy, OverridePolicy)  # its counters come back with the metrics
+        if not self.chunked:
+            agg = self.evaluator.run(policy, out_dir, title=title)
+            return Flight(agg, policy.counters() if override else {})
+        ev = self._chunked(policy, out_dir)
+        res = ev.run()
+        ev.write(res, title=title)
+        progress = {k: res[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks",
+                                        "in_flight_step", "cost", "records")}
+        return Flight(res["metrics"], policy.run_totals() if override else {},
+                      {**progress, "chunk": ev.chunk, "shard": ev.shard, "shards": ev.shards, "budget": self.budget})
+
+    def _chunked(self, policy: Any, out_dir: str | os.PathLike[str] | None) -> LLMAloneEvaluation:
+        e = self.evaluator
+        if out_dir is None:
+            raise ValueError("a chunked evaluation keeps its progress in its output folder; give one")
+        return LLMAloneEvaluation(
+            e.env_cfg, e.scenarios, policy, out_dir, seed=e.seed, chunk=self.chunk, max_steps=e.max_steps,
+            budget=self.budget, fingerprint=self.fingerprint, n_plots=e.n_plots, device=e.env.device,
+            shard=self.shard, shards=self.shards,
+        )
+
+
+def make_evaluation(cfg: DictConfig, env_cfg: EnvConfig, scenarios: list[Scenario], *, compile_step: bool = False,
+                    fingerprint: Mapping[str, Any] | None = None, chunked: bool | None = None) -> Evaluation:
+    """The evaluation of ``cfg`` (its ``trainer`` settings) on ``scenarios``: chunked and
+    budgeted when the LLM flies alone (``controller: llm``; ``chunked`` forces either way)."""
+    tr = cfg.trainer
+    evaluator = Evaluator(env_cfg, scenarios, seed=int(tr.eval_seed), max_steps=tr.eval_max_steps,
+                          n_plots=int(tr.eval_plots), device=cfg.device, compile_step=compile_step)
+    chunked = cfg.controller == "llm" if chunked is None else chunked
+    return Evaluation(evaluator, chunked=chunked, chunk=tr.eval_chunk, budget=tr.llm_call_budget,
+                      shard=int(tr.eval_shard), shards=int(tr.eval_shards), fingerprint=fingerprint)
+
+
+def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: Any = None) -> Any:
+    """Who flies an evaluation: a learner's actor alone (deterministic: the evaluator's
+    exploration type; no override, no noise), else the controller ``cfg.controller`` names."""
+    if learner is not None:
+        return learner.actor
+    return make_controller(cfg, env_cfg, action_spec=action_spec)
 
 
 # The entity counts of the world, as (config path, key of its count node): their padding fixes
@@ -143,27 +224,6 @@ def env_overrides(cfg_env: Any, task_overrides: Sequence[str] = ()) -> dict[str,
         if key.startswith("env.") and key[4:] in given:
             out[key[4:]] = given[key[4:]]
     return out
-
-
-def flatten_keys(d: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested dict as one level, its keys joined by dots (the run checks compare configs so)."""
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(flatten_keys(v, f"{prefix}{k}." if isinstance(v, dict) else f"{prefix}{k}"))
-    return out
-
-
-def config_differences(want: Any, have: Any) -> tuple[list[str], list[str]]:
-    """How a saved config ``have`` differs from this run's ``want`` (nested dicts), as sorted
-    dotted keys ``(changed, added)``. ``added`` are the keys ``have`` lacks: settings added to the
-    code after it was saved, whose defaults keep the earlier behaviour, so no difference. A key
-    only ``have`` holds (one since removed) counts as changed."""
-    w, h = flatten_keys(want), flatten_keys(have)
-    added = sorted(set(w) - set(h))
-    changed = sorted(k for k in set(w) | set(h) if k not in added and w.get(k) != h.get(k))
-    return changed, added
 
 
 def overridden_env(saved_env: Any, overrides: Mapping[str, Any]) -> EnvConfig:
@@ -206,6 +266,61 @@ def _default_out(run_dir: Path, stem: str, frames: int, overrides: Mapping[str, 
     return run_dir / "evaluate" / name
 
 
+@dataclass
+class Target:
+    """What ``uavlae.evaluate`` flies: a checkpoint's actor or a controller, on which world, into which folder."""
+
+    name: str
+    method: str
+    env_cfg: EnvConfig
+    out: Path
+    frames: int = 0
+    file: Path | None = None
+    state: dict[str, Any] | None = None
+    saved: DictConfig | None = None
+    run_dir: Path | None = None
+
+
+def _target(cfg: DictConfig, overrides: Mapping[str, Any]) -> Target:
+    """The checkpoint (a file or a run dir) and its world with the command line's env
+    overrides, or an evaluation-only controller (``heuristic``, ``llm``, ``random``)."""
+    from uavlae.checkpoint import load_checkpoint, run_dir_of
+
+    ex = cfg.experiment
+    if cfg.controller != "learner":
+        if not ex.eval_dir:
+            raise ValueError(f"uavlae.evaluate +exp={cfg.name} (a controller) needs experiment.eval_dir=PATH")
+        return Target(str(cfg.name), str(ex.method), make_env_config(cfg.env), Path(ex.eval_dir))
+    if not cfg.checkpoint:
+        raise ValueError("uavlae.evaluate needs checkpoint=PATH (a checkpoint file or a run dir)")
+    state, file = load_checkpoint(cfg.checkpoint, mmap=True)
+    saved = OmegaConf.create(state["config"])
+    run_dir = run_dir_of(file)
+    env_cfg = overridden_env(saved.env, overrides) if overrides else make_env_config(saved.env)
+    frames = int(state["counters"]["frames"])
+    name = str(saved.name)
+    out = Path(ex.eval_dir) if ex.eval_dir else _default_out(run_dir, file.stem, frames, overrides)
+    method = str(OmegaConf.select(saved, "experiment.method", default=name) or name)
+    return Target(name, method, env_cfg, out, frames, file, state, saved, run_dir)
+
+
+def _eval_set_file(cfg: DictConfig, t: Target, overrides: Mapping[str, Any]) -> Path:
+    if cfg.trainer.eval_set:
+        return Path(cfg.trainer.eval_set).expanduser()
+    if overrides or t.state is None:
+        return t.out / "eval_set.json"  # another world (or a controller): a set of its own
+    return eval_set_path(t.run_dir, None)  # type: ignore[arg-type]
+
+
+def _flyer(cfg: DictConfig, t: Target, evaluation: Evaluation) -> Any:
+    learner = None
+    if t.state is not None:
+        probe = make_env(t.env_cfg, 1, seed=0, device=cfg.device)
+        learner = make_learner(t.saved.algo, probe)  # type: ignore[union-attr]
+        learner.load_state_dict(t.state["learner"])
+    return make_flyer(cfg, t.env_cfg, evaluation.evaluator.env.action_spec, learner)
+
+
 def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> dict[str, float]:
     """Evaluate ``cfg.checkpoint`` (a file or a run dir), or the controller of an
     evaluation-only ``+exp`` (``heuristic``, ``llm``, ``random``: no checkpoint).
@@ -217,108 +332,63 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     folder. Writes ``episodes.csv``, ``metrics.json``, trajectory PNGs and ``evaluation.json``
     (what was evaluated, on which world, by which code) to ``experiment.eval_dir`` (default:
     ``<run_dir>/evaluate/<checkpoint>_frames<N>[_<hash of the overrides>]``)."""
-    from uavlae.checkpoint import load_checkpoint, run_dir_of
-    from uavlae.factories import make_controller, make_env, make_learner, run_metadata
-
-    ex = cfg.experiment
     tr = cfg.trainer  # evaluation settings come from this command line (defaults: the trainer's)
-    controller = cfg.controller != "learner"
     overrides = env_overrides(cfg.env, task_overrides)
-    if controller:
-        env_cfg, state, file, run_dir, frames = make_env_config(cfg.env), None, None, None, 0
-        name = str(cfg.name)
-        if not ex.eval_dir:
-            raise ValueError(f"uavlae.evaluate +exp={name} (a controller) needs experiment.eval_dir=PATH")
-        out = Path(ex.eval_dir)
-    else:
-        if not cfg.checkpoint:
-            raise ValueError("uavlae.evaluate needs checkpoint=PATH (a checkpoint file or a run dir)")
-        state, file = load_checkpoint(cfg.checkpoint, mmap=True)
-        saved = OmegaConf.create(state["config"])
-        run_dir = run_dir_of(file)
-        env_cfg = overridden_env(saved.env, overrides) if overrides else make_env_config(saved.env)
-        frames = int(state["counters"]["frames"])
-        name = str(saved.name)
-        out = Path(ex.eval_dir) if ex.eval_dir else _default_out(run_dir, file.stem, frames, overrides)
-    record_file = out / "evaluation.json"
-    spec = {
-        "checkpoint": str(file) if file else None,
-        "frames": frames,
-        "method": str(ex.method) if controller else str(OmegaConf.select(saved, "experiment.method", default=name) or name),
-        "env_overrides": {k: overrides[k] for k in sorted(overrides)},
-        "eval_set": tr.eval_set,
-        "eval_episodes": int(tr.eval_episodes),
-        "eval_seed": int(tr.eval_seed),
-        "eval_max_steps": tr.eval_max_steps,
+    t = _target(cfg, overrides)
+    spec = json.loads(json.dumps({
+        "checkpoint": str(t.file) if t.file else None, "frames": t.frames, "method": t.method,
+        "env_overrides": {k: overrides[k] for k in sorted(overrides)}, "eval_set": tr.eval_set,
+        "eval_episodes": int(tr.eval_episodes), "eval_seed": int(tr.eval_seed), "eval_max_steps": tr.eval_max_steps,
         "seed": int(cfg.seed),
-    }
-    if ex.reuse and record_file.is_file():
-        done = json.loads(record_file.read_text())
-        paused = not (done.get("llm_alone") or {}).get("complete", True)  # the LLM alone continues
-        if done.get("spec") == json.loads(json.dumps(spec, default=str)) and not paused:
-            log.info("%s: evaluated already (experiment.reuse)", record_file)
-            return done["metrics"]
-    if tr.eval_set:
-        set_file = Path(tr.eval_set).expanduser()
-    elif overrides or controller:
-        set_file = out / "eval_set.json"
-    else:
-        set_file = eval_set_path(run_dir, None)
-    scenarios = load_or_make_eval_set(env_cfg, set_file, tr.eval_episodes, tr.eval_seed)
-    evaluator = Evaluator(env_cfg, scenarios, seed=tr.eval_seed, max_steps=tr.eval_max_steps, n_plots=tr.eval_plots, device=cfg.device)
+    }, default=str))
+    done = _done(t.out / "evaluation.json", spec) if cfg.experiment.reuse else None
+    if done is not None:
+        return done
+    set_file = _eval_set_file(cfg, t, overrides)
+    scenarios = load_or_make_eval_set(t.env_cfg, set_file, tr.eval_episodes, tr.eval_seed,
+                                      sample=bool(tr.sample_eval_set) or not tr.eval_set)
+    fingerprint = {"spec": spec, "llm": OmegaConf.to_container(cfg.llm, resolve=True),
+                   "advisor": OmegaConf.to_container(cfg.advisor, resolve=True)}
+    evaluation = make_evaluation(cfg, t.env_cfg, scenarios, fingerprint=fingerprint)
     t0 = time.perf_counter()
-    if controller:
-        policy = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
-    else:
-        probe = make_env(env_cfg, 1, seed=0, device=cfg.device)
-        learner = make_learner(saved.algo, probe)
-        learner.load_state_dict(state["learner"])
-        policy = deterministic_actor(learner)
-    llm_alone = None
+    policy = _flyer(cfg, t, evaluation)
     try:
-        if cfg.controller == "llm":  # chunks, a call budget, resumable (uavlae.llm_alone)
-            from uavlae.llm_alone import LLMAloneEvaluation
-
-            fingerprint = {"spec": spec, "llm": OmegaConf.to_container(cfg.llm, resolve=True),
-                           "advisor": OmegaConf.to_container(cfg.advisor, resolve=True)}
-            ev = LLMAloneEvaluation(
-                env_cfg, scenarios, policy, out, seed=tr.eval_seed, chunk=tr.eval_chunk, max_steps=tr.eval_max_steps,
-                budget=tr.llm_call_budget, fingerprint=fingerprint, n_plots=tr.eval_plots, device=cfg.device,
-                shard=tr.eval_shard, shards=tr.eval_shards,
-            )
-            res = ev.run()
-            ev.write(res, title=name)
-            agg = res["metrics"]
-            llm_alone = {k: res[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks",
-                                             "in_flight_step", "cost")}
-            stats = policy.run_totals()
-        else:
-            agg = evaluator.run(policy, out, title=f"{name} @ {frames} frames")
-            stats = policy.snapshot() if hasattr(policy, "snapshot") else {}
+        flight = evaluation.fly(policy, t.out, title=f"{t.name} @ {t.frames} frames")
     finally:
-        close = getattr(policy, "close", None)
-        if close is not None:
-            close()
+        if isinstance(policy, OverridePolicy):
+            policy.close()  # the LLM's client, and the local server it started
+    _record(cfg, t, spec, set_file, len(scenarios), flight, time.perf_counter() - t0)
+    log_evaluation(cfg, t.out)
+    log.info("%s\n%s", t.out, format_metrics(flight.metrics))
+    return flight.metrics
+
+
+def _done(record_file: Path, spec: Mapping[str, Any]) -> dict[str, float] | None:
+    """A finished evaluation of the same spec (the LLM alone paused by its budget continues)."""
+    if not record_file.is_file():
+        return None
+    done = json.loads(record_file.read_text())
+    paused = not (done.get("llm_alone") or {}).get("complete", True)
+    if done.get("spec") == spec and not paused:
+        log.info("%s: evaluated already (experiment.reuse)", record_file)
+        return done["metrics"]
+    return None
+
+
+def _record(cfg: DictConfig, t: Target, spec: Mapping[str, Any], set_file: Path, n: int, flight: Flight,
+            wall_s: float) -> None:
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    record = {
-        "spec": json.loads(json.dumps(spec, default=str)),
-        "name": name,
-        "episodes_trained": int(state["counters"].get("episodes", 0)) if state else 0,
-        "updates": int(state["counters"].get("updates", 0)) if state else 0,
-        "eval_set_file": str(set_file),
-        "n_scenarios": len(scenarios),
-        "metrics": agg,
-        "controller_stats": {k: v for k, v in stats.items() if isinstance(v, (int, float))},
-        "llm_alone": llm_alone,
-        "wall_s": round(time.perf_counter() - t0, 3),
+    counters = (t.state or {}).get("counters", {})
+    llm_alone = None if flight.llm_alone is None else {k: v for k, v in flight.llm_alone.items() if k != "records"}
+    dump_json(t.out / "evaluation.json", {
+        "spec": dict(spec), "name": t.name,
+        "episodes_trained": int(counters.get("episodes", 0)), "updates": int(counters.get("updates", 0)),
+        "eval_set_file": str(set_file), "n_scenarios": n, "metrics": flight.metrics,
+        "controller_stats": {k: v for k, v in flight.stats.items() if isinstance(v, (int, float))},
+        "llm_alone": llm_alone, "wall_s": round(wall_s, 3),
         "experiment": resolved.get("experiment"),  # type: ignore[union-attr]
-        "env": env_cfg.model_dump(mode="json"),
-        "meta": run_metadata(resolved),  # type: ignore[arg-type]
-    }
-    dump_json(record_file, record)
-    log_evaluation(cfg, out, record)
-    log.info("%s\n%s", out, format_metrics(agg))
-    return agg
+        "env": t.env_cfg.model_dump(mode="json"), "meta": run_metadata(resolved),  # type: ignore[arg-type]
+    })
 
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")

@@ -71,11 +71,12 @@ class TrainerConfig(StrictModel):
     replay_capacity: int = Field(ge=1)
     batch_size: int = Field(ge=1)
     checkpoint_replay_buffer: bool
-    keep_replay_at_end: bool = False  # a finished run's checkpoint keeps the replay buffer too
+    keep_replay_at_end: bool = True  # a finished run's checkpoint keeps the replay buffer too (to extend it)
     eval_every_frames: int = Field(ge=0)
     eval_episodes: int = Field(ge=1)
     eval_seed: int
     eval_set: str | None
+    sample_eval_set: bool = False  # a missing eval_set file is sampled and saved there (else an error)
     eval_max_steps: int | None = Field(ge=1)
     eval_plots: int = Field(ge=0)
     checkpoint_every_frames: int = Field(ge=0)
@@ -251,6 +252,18 @@ def _algo_config(cfg: Any) -> Any:
 # ---------------------------------------------------------------------------- env
 
 
+def check_device(device: str) -> None:
+    """A device this machine has, or an error naming it (before a run writes anything)."""
+    try:
+        dev = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device={device!r} is not a device torch knows: {err}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={device!r}: this torch ({torch.__version__}) sees no CUDA device; use device=cpu")
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device={device!r}: no MPS device here; use device=cpu")
+
+
 def make_env(
     env_cfg: EnvConfig | Any,
     batch_size: int,
@@ -275,11 +288,6 @@ def make_learner(algo_cfg: Any, env: UAVEnv) -> Any:
     """``conf/algo`` -> a learner (``actor``, ``update``, ``state_dict``) sized for ``env``."""
     obs_dim = env.observation_spec["observation"].shape[-1]
     return _make_learner(algo_cfg, obs_dim, env.action_spec, layout=env.layout)
-
-
-def behaviour_actor(learner: Any) -> Any:
-    """The module that acts while collecting: DDPG's noisy policy, the others' actor."""
-    return getattr(learner, "exploration_policy", None) or learner.actor
 
 
 def make_heuristic(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
@@ -471,10 +479,13 @@ def without_hydra_output(argv: list[str]) -> list[str]:
     return argv + [o for o in NO_HYDRA_OUTPUT if o.split("=", 1)[0] not in given]
 
 
-def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any]) -> RunLogger:
+def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any],
+                resume: bool = False) -> RunLogger:
     """``conf/logger`` -> :class:`RunLogger`; CSV under ``<run_dir>/logs/scalars``, the wandb
     run (offline by default) under ``<run_dir>/wandb`` with the resolved config, the git
-    commit and the package versions, grouped, named and tagged as :mod:`uavlae.runlog` says."""
+    commit and the package versions, grouped, named and tagged as :mod:`uavlae.runlog` says.
+    ``resume``: the wandb run of that id continues (the same run, its steps going on from the
+    checkpoint's frames)."""
     from torchrl.record.loggers import CSVLogger
 
     from uavlae.runlog import wandb_group, wandb_name, wandb_tags
@@ -501,6 +512,7 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
             job_type="train",
             config=dict(hparams),
             mode=lc.wandb.mode,
+            **({"resume": "allow"} if resume else {}),
         )
     return RunLogger(loggers, run_id, run_dir)
 

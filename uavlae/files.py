@@ -1,6 +1,8 @@
 """Files written atomically: a temporary file beside the target, flushed to disk, then renamed
-over it, so that a reader (or a run interrupted half-way) never sees a half-written file. Also
-where a training run puts its evaluations, for the writer and its readers alike."""
+over it, so that a reader (or a run interrupted half-way) never sees a half-written file. The
+file gets the mode any file of this process gets (0666 less the umask), not the temporary
+file's private 0600, so a shared experiment folder stays readable by whom the umask allows.
+Also where a training run puts its evaluations, for the writer and its readers alike."""
 
 from __future__ import annotations
 
@@ -15,6 +17,19 @@ from typing import IO, Any
 __all__ = ["ABSOLUTE_PATH", "atomic_write", "dump_json", "portable", "train_eval_dir"]
 
 
+def _file_mode() -> int:
+    """0666 less the process's umask (read without changing it where /proc tells it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: read it by setting it, and put it back at once
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any], *, previous: str | os.PathLike[str] | None = None) -> Path:
     """Call ``write(fh)`` on a binary file that becomes ``path`` only once it is complete.
     ``previous``: an existing ``path`` is first renamed to it (a one-deep backup). The parent
@@ -26,6 +41,7 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any]
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
+            os.fchmod(fh.fileno(), _file_mode())
             os.fsync(fh.fileno())
         if previous is not None and path.exists():
             os.replace(path, previous)  # from here until the next line only the backup exists

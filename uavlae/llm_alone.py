@@ -58,6 +58,7 @@ from uavlae.envs import UAVEnv, make_env_config
 from uavlae.envs.metrics import EpisodeTracker, aggregate, concat_records, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario
 from uavlae.files import atomic_write
+from uavlae.lifecycle import config_differences
 from uavlae.policies.override import FALLBACK
 
 log = logging.getLogger(__name__)
@@ -152,8 +153,6 @@ class LLMAloneEvaluation:
         if state.get("version") not in (1, FORMAT_VERSION):
             raise ValueError(f"{path}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
         if state["fingerprint"] != self.fingerprint or state["chunk"] != self.chunk:
-            from uavlae.evaluate import config_differences
-
             # settings the file lacks were added to the code after it was written: no difference
             changed, _ = config_differences({**self.fingerprint, "eval_chunk": self.chunk},
                                             {**state["fingerprint"], "eval_chunk": state["chunk"]})

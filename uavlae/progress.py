@@ -77,6 +77,10 @@ class Progress:
             self.last_line = self.clock()
             log.info("%s", self.line())
 
+    def update(self, n: int) -> None:
+        """tqdm's name for :meth:`advance`, so the loop can hold either."""
+        self.advance(n)
+
     def batch_done(self, frames: int, last_eval: Mapping[str, float] | None = None,
                    last_eval_frames: int | None = None) -> None:
         """End of a collector batch: ``frames`` is the loop's own count (it wins over the sum of the

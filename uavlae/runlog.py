@@ -112,15 +112,18 @@ def publish_final(experiment: Any, run_dir: Path) -> bool:
     return True
 
 
-def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any]) -> None:
+def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any] | None = None) -> None:
     """One ``uavlae.evaluate`` (a point of a scenario sweep) as its own wandb run, in the group of
     its invocation: the metrics at the checkpoint's frames, in the summary, the per-episode records
-    as a table and the trajectory pictures. Nothing when ``logger.wandb.mode=disabled``."""
+    as a table and the trajectory pictures. ``record``: the evaluation's ``evaluation.json``
+    (default: read from ``out_dir``). Nothing when ``logger.wandb.mode=disabled``."""
     from uavlae.factories import make_experiment_config, make_logger_config
 
     lc = make_logger_config(cfg.logger)
     if lc.wandb.mode == "disabled":
         return
+    if record is None:
+        record = json.loads((Path(out_dir) / "evaluation.json").read_text())
     from torchrl.record.loggers import WandbLogger
 
     ex = make_experiment_config(cfg.experiment)

@@ -1,26 +1,30 @@
-"""``python -m uavlae.train +exp=NAME``: train (or, for ``heuristic`` / ``llm``, evaluate) one method.
+"""``python -m uavlae.train +exp=NAME``: train (or, for ``heuristic`` / ``llm`` / ``random``, evaluate) one method.
 
-The loop, top to bottom (every number in ``conf/``)::
+The loop (:func:`train`), top to bottom, in the shape of TorchRL's ``sota-implementations``::
 
-    for batch in collector:                      # [B, T] executed transitions, step = env frames
-        off-policy (sac, ddpg), inside every env step of the batch (OffPolicyUpdates):
-            the triggered rows' advice is sent; the gradient steps owed so far run while it is
-            in flight; the (updated) actor acts; the answers are merged; the env steps;
-            replay.extend(transition); utd_ratio * B gradient steps owed once past the warm-up
-        on-policy (ppo, cpo):   learner.update(batch)
-        log train metrics, episode metrics, override / LLM counters, fps
-        every eval_every_frames:       evaluate the deterministic actor on the fixed set
-        every checkpoint_every_frames: atomic checkpoint (exact resume at this batch boundary)
-    at the end: the owed gradient steps, a final evaluation, the heuristic and a random policy
-    on the same set (``trainer.baselines``), final_metrics.json and a summary for the reader
+    while the frame budget is not spent:
+        off-policy (sac, ddpg), one env step at a time for a batch of T steps:
+            collector.begin_step()      the triggered rows' advice requests go out
+            updates.pay()               the gradient steps owed so far run while they are in flight
+            collector.finish_step()     the (updated) actor acts, the answers are merged, the env steps
+            updates.store()             the transition goes to the replay buffer; utd_ratio * B steps are owed
+        on-policy (ppo, cpo, wang, theile): collector.rollout_batch(), then learner.update(batch)
+        log the batch; evaluate the actor alone every eval_every_frames; checkpoint every
+        checkpoint_every_frames (and when SIGTERM or SIGINT asks the run to stop)
+    at the end: the owed gradient steps, a final evaluation, the actor with its advisor (advised
+    runs), the heuristic and a random policy on the same set (``trainer.baselines``),
+    final_metrics.json and a summary for the reader
 
 Every off-policy method gets the same schedule (``sac`` and ``sac_llm`` differ only in who
 acts), and it does not depend on when the answers arrive: with ``llm.cache_mode=replay_only``
-a run replays exactly, and ``trainer.overlap_advice=false`` gives the same numbers.
+a run replays exactly, and ``trainer.overlap_advice=false`` (the updates before the requests
+go out) gives the same numbers.
 
-``run(cfg)`` is importable (the tests call it in-process) and returns the final metrics.
-``resume=RUN_DIR_OR_CHECKPOINT`` continues a run: same config, frames, RNG states, replay
-buffer, CSV files and wandb run id.
+The run folder belongs to this process while it runs, and what the command does with it (a new
+run, a resumed one, nothing because it is finished) is decided in one place,
+:func:`uavlae.lifecycle.plan`. ``run(cfg)`` is importable (the tests call it in-process) and
+returns the final metrics. ``resume=RUN_DIR_OR_CHECKPOINT`` continues a run exactly: same
+config, frames, RNG states, replay buffer, CSV files and wandb run.
 """
 
 from __future__ import annotations
@@ -28,45 +32,48 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 import time
 import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 
-from uavlae.algos import OFF_POLICY
-from uavlae.checkpoint import (
-    load_checkpoint, resolve_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state,
-)
+from uavlae.checkpoint import resolve_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.evaluate import Evaluator, config_differences, flatten_keys, deterministic_actor, eval_set_path, load_or_make_eval_set
+from uavlae.evaluate import Evaluation, Flight, eval_set_path, load_or_make_eval_set, make_evaluation, make_flyer
 from uavlae.factories import (
     CONF_DIR,
-    behaviour_actor,
     dump_json,
-    make_controller,
     make_env,
+    make_heuristic,
     make_learner,
     make_logger,
     make_policy,
     make_trainer_config,
+    check_device,
     redact_secrets,
     run_metadata,
     trim_csv_scalars,
     validate_config,
 )
 from uavlae.files import atomic_write, train_eval_dir
+from uavlae.lifecycle import RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, flatten_keys, lock_name, plan
 from uavlae.progress import progress_for
+from uavlae.policies.override import OverridePolicy
+from uavlae.policies.random import UniformRandomPolicy
+from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
 log = logging.getLogger(__name__)
 
-# What a resumed run may take from the new command line; everything else is the saved config.
-RESUME_RUNTIME_KEYS = ("threads", "trainer.progress_bar", "trainer.progress_every_s", "logger.wandb.mode")
 # What the replay buffer keeps of a transition (the collector already dropped the raw state).
 REPLAY_KEYS = (
     "observation", "action", "action_source",
@@ -75,76 +82,11 @@ REPLAY_KEYS = (
 )
 
 
+# ---------------------------------------------------------------------------- config
+
+
 def _resolved(cfg: DictConfig) -> dict[str, Any]:
     return redact_secrets(OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
-
-
-# Keys that may differ between a sweep's re-run and the run it finds in its run_dir (the LLM
-# alone's call budget is what one invocation may spend: a re-run with another continues).
-# the LLM alone's budget and shards: how a run is split into invocations and processes, not what it is
-REUSE_IGNORED_KEYS = ("resume", "experiment.reuse", "trainer.llm_call_budget", "trainer.eval_shard",
-                      "trainer.eval_shards", *RESUME_RUNTIME_KEYS)
-
-
-def _comparable(cfg_dict: dict[str, Any]) -> dict[str, Any]:
-    c = OmegaConf.create(cfg_dict)
-    c.run_dir = str(Path(c.run_dir).resolve())  # a resumed run saves its run_dir resolved
-    for key in REUSE_IGNORED_KEYS:
-        if OmegaConf.select(c, key) is not None:
-            OmegaConf.update(c, key, None, merge=False)
-    return OmegaConf.to_container(c)  # type: ignore[return-value]
-
-
-def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
-    """With ``experiment.reuse``: what ``cfg.run_dir`` holds of this run. ``("done", final
-    metrics)`` for a finished run, ``("resume", None)`` for one with a checkpoint, ``("new",
-    None)`` otherwise. A run_dir that holds a run of another config is an error (a sweep re-run
-    with changed settings must not mix the two). Settings the saved config lacks (added to the
-    code after the run was made, with defaults that keep the earlier behaviour) do not count as
-    a difference; they are logged."""
-    run_dir = Path(cfg.run_dir)
-    saved_file = run_dir / "config.json"
-    if not cfg.experiment.reuse or not saved_file.is_file():
-        return "new", None
-    want = _comparable(_resolved(cfg))
-    changed, added = config_differences(want, _comparable(json.loads(saved_file.read_text())))
-    if added:
-        flat = flatten_keys(want)
-        log.warning("%s was made before these settings existed; reusing it as if at their values now: %s",
-                    run_dir, {k: flat[k] for k in added})
-    if changed:
-        raise ValueError(
-            f"{run_dir} holds a run of another config (differs in {changed[:8]}); "
-            "remove it or set experiment.root elsewhere"
-        )
-    final = run_dir / "final_metrics.json"
-    if final.is_file():
-        done = json.loads(final.read_text())
-        if done.get("eval/complete", 1) == 0:  # the LLM alone paused by its call budget: continue it
-            return "new", None
-        return "done", done
-    if (run_dir / "checkpoints" / "last.pt").is_file() or (run_dir / "checkpoints" / "prev.pt").is_file():
-        return "resume", None
-    return "new", None
-
-
-def _prepare(cfg: DictConfig) -> tuple[DictConfig, dict[str, Any] | None]:
-    """Resolve the config; on ``resume`` load the checkpoint and continue with its config."""
-    ckpt = None
-    if cfg.resume:
-        ckpt, file = load_checkpoint(cfg.resume)
-        saved = OmegaConf.create(ckpt["config"])
-        for key in RESUME_RUNTIME_KEYS:
-            OmegaConf.update(saved, key, OmegaConf.select(cfg, key), merge=False)
-        saved.resume = str(file)
-        saved.run_dir = str(run_dir_of(file))
-        cfg = saved
-        log.info("resuming %s from %s at %d frames", cfg.name, file, ckpt["counters"]["frames"])
-    else:
-        cfg = OmegaConf.create(_resolved(cfg))
-    OmegaConf.set_struct(cfg, True)
-    validate_config(cfg)
-    return cfg, ckpt
 
 
 def _prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
@@ -155,47 +97,280 @@ def _prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
     return out
 
 
-class OffPolicyUpdates:
-    """The off-policy schedule, per env step: each step's ``B`` transitions go to the replay
-    buffer and, once ``frames >= init_random_frames`` and the buffer holds a sample, owe
-    ``utd_ratio * B`` gradient steps (fractions carried in ``counters["utd_debt"]``), which run
-    at the next env step while its advice is in flight (:class:`uavlae.collect.UAVCollector`'s
-    ``between``); :meth:`flush` pays what is left at the end of training."""
+def command_line_keys(cfg: DictConfig, overrides: Sequence[str] | None = None) -> list[str]:
+    """The keys a command line sets: where ``cfg`` differs from the default config, and every
+    key ``overrides`` names (a value typed equal to its default still counts)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        default = compose("config")
+    else:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            default = compose("config")
+    want = flatten_keys(OmegaConf.to_container(cfg, resolve=True))
+    base = flatten_keys(OmegaConf.to_container(default, resolve=True))
+    keys = {k for k in set(want) | set(base) if want.get(k) != base.get(k) and not k.startswith("hydra.")}
+    for o in overrides or ():
+        key = o.split("=", 1)[0].lstrip("+~")
+        keys.update(k for k in want if k == key or k.startswith(key + "."))
+    return sorted(keys)
+
+
+def check_run(cfg: DictConfig, budgets: bool = True) -> None:
+    """What makes a run compute something else than it says, refused before anything is
+    written: a frame budget below one collector batch or below the random warm-up (``budgets``;
+    a resume checks them once merged with the recorded run), and a device this machine does
+    not have."""
+    validate_config(cfg)
+    tr = make_trainer_config(cfg.trainer)
+    check_device(cfg.device)
+    if cfg.controller != "learner" or not budgets:
+        return
+    if tr.total_frames < tr.frames_per_batch:
+        raise ValueError(f"trainer.total_frames={tr.total_frames} is below one collector batch "
+                         f"(trainer.frames_per_batch={tr.frames_per_batch}): raise the budget or lower the batch")
+    if cfg.algo.name in ("sac", "ddpg") and tr.init_random_frames >= tr.total_frames:
+        raise ValueError(f"trainer.total_frames={tr.total_frames} does not exceed the random warm-up "
+                         f"(trainer.init_random_frames={tr.init_random_frames}): no gradient step would run")
+
+
+def _fingerprint(cfg: DictConfig) -> dict[str, Any]:
+    """What an LLM-alone evaluation's progress files must match: the config, less how it is
+    split into invocations and processes, and where it lies."""
+    c = OmegaConf.create(_resolved(cfg))
+    for key in (*RESUMABLE_KEYS, "resume", "experiment.reuse"):
+        if OmegaConf.select(c, key) is not None:
+            OmegaConf.update(c, key, None, merge=False)
+    out = OmegaConf.to_container(c)
+    out.pop("run_dir", None)  # type: ignore[union-attr]
+    return out  # type: ignore[return-value]
+
+
+# ---------------------------------------------------------------------------- the scheduled updates
+
+
+class Updates:
+    """The off-policy schedule: each env step's ``B`` transitions go to the replay buffer and,
+    once ``frames >= init_random_frames`` and the buffer holds a sample, owe ``utd_ratio * B``
+    gradient steps (fractions carried in ``counters["utd_debt"]``), paid at the next env step
+    while its advice is in flight; :meth:`flush` pays what is left at the end of training."""
 
     def __init__(self, learner: Any, replay: Any, tr: Any, counters: dict[str, Any]):
         self.learner, self.replay, self.tr, self.counters = learner, replay, tr, counters
         self.logs: dict[str, float] = {}
+        self.seconds = self.overlap_seconds = 0.0  # in this batch
 
-    def add(self, transition: Any) -> None:
-        """The collector's ``on_step``: store the step, count what it owes."""
+    def store(self, transition: TensorDictBase) -> None:
         self.replay.extend(transition.select(*REPLAY_KEYS, strict=False).reshape(-1))
         frames = self.counters["frames"] + transition.batch_size[0]
         self.counters["frames"] = frames
         if frames >= self.tr.init_random_frames and len(self.replay) >= self.tr.batch_size:
             self.counters["utd_debt"] += self.tr.utd_ratio * transition.batch_size[0]
 
-    def run(self) -> None:
-        """The collector's ``between``: the gradient steps owed so far."""
+    def pay(self, in_flight: Any = None) -> None:
+        """The gradient steps owed so far; ``in_flight``: the step whose advice is out, to count
+        how much of this work ran before its answers arrived."""
+        t0 = time.perf_counter()
+        self.learner.anneal(self.counters["frames"])
         n = int(self.counters["utd_debt"])
         self.counters["utd_debt"] -= n
-        self.learner.anneal(self.counters["frames"])
         for _ in range(n):
             self.logs = self.learner.update(self.replay.sample())
         self.counters["updates"] += n
+        t1 = time.perf_counter()
+        self.seconds += t1 - t0
+        pending = in_flight.pending if in_flight is not None else None
+        if pending is not None and pending.handle is not None:
+            done = pending.done_at
+            self.overlap_seconds += max(0.0, min(t1, done if done is not None else t1) - t0)
 
     def flush(self) -> None:
-        with torch.enable_grad():
-            self.run()
+        self.pay()
 
 
-# What the closing summary says of each paper metric (docs/model.md §5).
-METRIC_MEANINGS = {
-    "DCR": "data collected / data there, higher is better",
-    "CR": "episodes with a collision, lower is better",
-    "SLR": "episodes that landed, higher is better",
-    "RVR": "episodes speeding in a residential zone, lower is better",
-    "ECR": "energy used / energy limit, lower is better",
-}
+# ---------------------------------------------------------------------------- a training run
+
+
+@dataclass
+class Training:
+    """A training run's parts and bookkeeping; :func:`train` is its loop."""
+
+    cfg: DictConfig
+    tr: Any  # the validated trainer config
+    run_dir: Path
+    logger: Any
+    evaluation: Evaluation
+    env: Any
+    learner: Any
+    policy: Any
+    collector: UAVCollector
+    replay: Any
+    updates: Updates | None
+    counters: dict[str, Any]
+    bar: Any = None
+    last_eval: dict[str, float] = field(default_factory=dict)
+    train_logs: dict[str, float] = field(default_factory=dict)
+    frames_start: int = 0
+    t_start: float = field(default_factory=time.perf_counter)
+
+    @property
+    def frames(self) -> int:
+        return int(self.counters["frames"])
+
+    def budget_spent(self) -> bool:
+        """The frame budget, or the episode budget (paper: 4000 episodes) when one is set."""
+        tr = self.tr
+        episodes_done = tr.total_episodes is not None and self.counters["episodes"] >= tr.total_episodes
+        return self.frames >= tr.total_frames or episodes_done
+
+    def collect_off_policy(self) -> TensorDictBase:
+        """T env steps, the scheduled gradient steps inside each (module doc)."""
+        steps, overlap = [], self.tr.overlap_advice
+        for _ in range(self.collector.T):
+            if not overlap:
+                self.updates.pay()
+            handle = self.collector.begin_step()
+            if overlap:
+                self.updates.pay(handle)
+            transition = self.collector.finish_step(handle)
+            self.updates.store(transition)
+            steps.append(transition)
+            self.bar.update(transition.batch_size[0])
+        if self.budget_spent():
+            self.updates.flush()  # the last step's gradient steps have no next step to run in
+        return torch.stack(steps, dim=1)
+
+    def update_on_policy(self, batch: TensorDictBase) -> float:
+        t0 = time.perf_counter()
+        self.learner.anneal(self.collector.frames)
+        self.train_logs = self.learner.update(batch)
+        self.counters["updates"] += 1
+        self.bar.update(batch.numel())
+        return time.perf_counter() - t0
+
+    def log_batch(self, batch: TensorDictBase, update_s: float, overlap_s: float) -> None:
+        c = self.counters
+        c["frames"] = self.collector.frames
+        c["batches"] += 1
+        c["episodes"] += int(batch.get(("next", "done")).sum())
+        c["update_s"] += update_s
+        c["overlap_s"] += overlap_s
+        if c["batches"] % self.tr.log_every_batches:
+            return
+        _, episodes = self.collector.episode_metrics()
+        elapsed = time.perf_counter() - self.t_start
+        advised = self.cfg.advisor.kind != "none"
+        self.logger.log_metrics({
+            **_prefixed("train", self.train_logs), **_prefixed("episode", episodes),
+            **(_prefixed("override", self.collector.override_stats(reset=True)) if advised else {}),
+            "time/fps": (self.frames - self.frames_start) / max(elapsed, 1e-9), "time/update_s": update_s,
+            "time/update_overlap_s": overlap_s, "train/updates": c["updates"], "train/episodes": c["episodes"],
+            "train/replay_size": len(self.replay) if self.replay is not None else 0,
+        }, step=self.frames)
+
+    def evaluate(self) -> None:
+        out = train_eval_dir(self.run_dir, self.frames)
+        flight = self.evaluation.fly(self.learner.actor, out, title=f"{self.cfg.name} @ {self.frames} frames")
+        self.last_eval = flight.metrics
+        self.logger.log_metrics({**_prefixed("eval", flight.metrics), "eval/episodes_trained": self.counters["episodes"]},
+                                step=self.frames)
+        self.logger.log_images(_trajectory_images(out), step=self.frames)
+        self.counters["last_eval_frames"] = self.frames
+        every = self.tr.eval_every_frames or self.tr.total_frames
+        self.counters["next_eval"] = (self.frames // every + 1) * every
+
+    def checkpoint(self, final: bool = False) -> Path:
+        """An atomic checkpoint at this batch boundary (exact resume). A finished run keeps its
+        networks and, with ``trainer.keep_replay_at_end``, its buffer (to extend it later)."""
+        tr = self.tr
+        every = tr.checkpoint_every_frames or tr.total_frames
+        self.counters["next_ckpt"] = (self.frames // every + 1) * every
+        keep_replay = tr.checkpoint_replay_buffer and (not final or tr.keep_replay_at_end)
+        state = {
+            "learner": self.learner.state_dict(), "collector": self.collector.state_dict(),
+            "replay_buffer": self.replay.state_dict() if (self.replay is not None and keep_replay) else None,
+            "rng": rng_state(), "counters": dict(self.counters), "last_eval": dict(self.last_eval),
+            "logger": self.logger.state_dict(), "config": _resolved(self.cfg),
+        }
+        path = save_checkpoint(state, self.run_dir, keep=tr.keep_checkpoints)
+        if final and not keep_replay:
+            (path.parent / "prev.pt").unlink(missing_ok=True)  # the one before still holds a buffer
+        return path
+
+    def progress_note(self) -> None:
+        self.bar.batch_done(self.frames, self.last_eval, self.counters.get("last_eval_frames"))
+
+
+def train(t: Training, stop: GracefulStop) -> dict[str, Any]:
+    """The training loop (module doc); returns the final metrics."""
+    t.bar = progress_for(t.cfg, t.tr, t.frames)  # a bar on a terminal, else a line every progress_every_s
+    try:
+        _loop(t, stop)
+    finally:
+        t.bar.close()
+        t.collector.shutdown()
+    return finish(t)
+
+
+def _loop(t: Training, stop: GracefulStop) -> None:
+    wall0, t0 = float(t.counters["wall_s"]), time.perf_counter()
+    while not t.budget_spent():
+        t_batch = time.perf_counter()
+        if t.updates is not None:
+            t.updates.seconds = t.updates.overlap_seconds = 0.0
+            batch = t.collect_off_policy()
+            update_s, overlap_s, t.train_logs = t.updates.seconds, t.updates.overlap_seconds, t.updates.logs
+        else:
+            batch = t.collector.rollout_batch()
+            update_s, overlap_s = t.update_on_policy(batch), 0.0
+        t.counters["wall_s"] = wall0 + (time.perf_counter() - t0)  # over every resumed part
+        t.counters["train_s"] = t.counters.get("train_s", 0.0) + (time.perf_counter() - t_batch)
+        t.log_batch(batch, update_s, overlap_s)
+        finished = t.budget_spent()
+        if t.frames >= t.counters["next_eval"] or finished:
+            t.evaluate()
+        if t.frames >= t.counters["next_ckpt"] or finished or stop.requested:
+            t.checkpoint(final=finished)
+        t.progress_note()
+        if stop.requested and not finished:
+            raise RunStopped(f"stopped by signal {stop.signum} at {t.frames:,} frames after a checkpoint; continue "
+                             f"with: python -m uavlae.train resume={t.run_dir}", int(stop.signum))
+
+
+def finish(t: Training) -> dict[str, Any]:
+    """The final evaluation (unless the last batch made it), the actor with its advisor, the
+    baselines, ``final_metrics.json`` and ``summary.json``."""
+    tr, cfg, c = t.tr, t.cfg, t.counters
+    if c.get("last_eval_frames") != t.frames:  # resumed after the final batch
+        t.evaluate()
+    final = {
+        "frames": t.frames, "episodes": c["episodes"], "updates": c["updates"], "wall_s": round(float(c["wall_s"]), 1),
+        **_prefixed("eval", t.last_eval),
+        "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in t.learner.actor.parameters())),
+    }
+    advised = cfg.advisor.kind != "none"
+    if advised:
+        final.update(_prefixed("override", _deterministic_counts(t.policy.run_totals())))
+        if tr.eval_with_advisor:
+            final.update(_advised_evaluation(t))
+    t_base = time.perf_counter()
+    if tr.baselines:
+        final.update(_baselines(cfg, t.evaluation, t.run_dir))
+    dump_json(t.run_dir / "final_metrics.json", final)
+    train_s = c.get("train_s", 0.0)
+    write_summary(t.run_dir, {
+        "name": str(cfg.name), "controller": "learner", "run_dir": str(t.run_dir), "frames": t.frames,
+        "full_run_frames": full_run_frames(), "updates": c["updates"], "train_s": train_s,
+        "fps": t.frames / train_s if train_s else None, "update_s": c["update_s"], "overlap_s": c["overlap_s"],
+        "baselines_s": time.perf_counter() - t_base, "eval_episodes": len(t.evaluation.scenarios),
+        "metrics": {f"{cfg.name} (trained actor)": t.last_eval, **advised_row(final, str(cfg.name)), **baseline_rows(final)},
+        "advisor_kind": str(cfg.advisor.kind), "override": t.policy.run_totals() if advised else None,
+        "pictures": pictures(t.run_dir, t.frames),
+    })
+    log.info("%s done at %d frames: %s", cfg.name, t.frames,
+             {k: round(t.last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
+    return final
 
 
 def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
@@ -204,450 +379,208 @@ def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in totals.items() if not k.startswith("advisor/") and not k.endswith("_s")}
 
 
-def _baselines(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, run_dir: Path) -> dict[str, float]:
-    """The greedy heuristic and a uniform-random policy on the same evaluation set."""
-    from uavlae.collect import _UniformRandom
-    from uavlae.factories import make_heuristic
-
-    generator = torch.Generator()
-    generator.manual_seed(int(cfg.trainer.eval_seed))
-    policies = {"heuristic": make_heuristic(cfg, env_cfg), "random": _UniformRandom(evaluator.env.action_spec, generator)}
-    out: dict[str, float] = {}
-    for name, policy in policies.items():
-        agg = evaluator.run(policy, run_dir / "eval" / f"baseline_{name}", title=name)
-        out.update(_prefixed(f"baseline/{name}", agg))
-    return out
-
-
-def _advised_evaluation(policy: Any, evaluator: Evaluator, run_dir: Path, tr: Any, name: str) -> dict[str, float]:
+def _advised_evaluation(t: Training) -> dict[str, float]:
     """The actor *with* its advisor on the same evaluation set as the actor alone: the
     override at its full trigger (no phase-out), the actor deterministic, at most
     ``trainer.eval_advisor_max_calls`` rows asked. Beside ``eval/``, this tells what the actor
     owes to its advisor. Training state is untouched (``OverridePolicy.advised``)."""
-    with policy.advised(max_calls=tr.eval_advisor_max_calls):
-        agg = evaluator.run(policy, run_dir / "eval" / "with_advisor", title=f"{name} with its advisor")
-        counts = policy.counters()
+    with t.policy.advised(max_calls=t.tr.eval_advisor_max_calls):
+        flight = t.evaluation.fly(t.policy, t.run_dir / "eval" / "with_advisor", title=f"{t.cfg.name} with its advisor")
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
             "advised", "budget_skipped", "frames")
-    return {**_prefixed("advised", agg), **_prefixed("advised/override", {k: counts[k] for k in keep})}
+    return {**_prefixed("advised", flight.metrics), **_prefixed("advised/override", {k: flight.stats[k] for k in keep})}
 
 
-def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
-    path = run_dir / "summary.json"
-    dump_json(path, summary)
-    return path
-
-
-def format_summary(summary: dict[str, Any]) -> str:
-    """The closing print of a run, for a reader who has not seen the code."""
-    lines = []
-    name, frames = summary["name"], int(summary["frames"])
-    if summary.get("controller", "learner") == "learner":
-        full = int(summary["full_run_frames"])
-        fps = summary.get("fps")
-        lines.append(
-            f"{name}: trained {frames:,} environment frames ({100 * frames / full:.2g}% of a full run's {full:,}; "
-            f"`make run RUN_ARGS=` trains all of it) with {int(summary['updates']):,} gradient steps"
-            + (f", {summary['train_s']:.1f} s at {fps:.1f} frames/s (evaluation not counted)" if fps else "") + "."
-        )
-    else:
-        lines.append(f"{name}: evaluated (no training).")
-    rows = summary["metrics"]
-    n_eps = summary.get("eval_episodes")
-    lines.append("")
-    who_flies = ("the trained actor flies alone, deterministically" if summary.get("controller", "learner") == "learner"
-                 else f"{summary.get('controller')} flies")
-    lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; {who_flies}):")
-    width = max(len(k) for k in rows) + 2
-    lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))
-    for who, agg in rows.items():
-        lines.append(f"{who:<{width}}" + "".join(f"{agg.get(k, float('nan')):8.3f}" for k in PAPER_METRICS))
-    lines.extend(f"  {k}: {v}" for k, v in METRIC_MEANINGS.items())
-    ov = summary.get("override")
-    if ov:
-        kind = summary.get("advisor_kind", "advisor")
-        f_ = max(int(ov.get("frames", 0)), 1)
-        lines.append("")
-        lines.append(
-            f"Advisor ({kind}): triggered on {int(ov['triggered']):,} of {int(ov['frames']):,} frames "
-            f"({100 * ov['triggered'] / f_:.1f}%); {int(ov.get('advised', 0)):,} rows asked, "
-            f"{int(ov.get('held', 0)):,} executed a held answer (hold_steps={int(ov.get('hold_steps', 1))}), "
-            f"{int(ov.get('budget_skipped', 0)):,} left to the actor by the call budget"
-            + (f" (max_calls={int(ov['max_calls'])})" if ov.get("max_calls", -1) >= 0 else "") + "; "
-            f"{int(ov.get('source/fallback', 0)):,} failed answers."
-        )
-        if ov.get("advised_fraction") is not None:
-            gap, agree = ov.get("actor_gap", float("nan")), ov.get("actor_agree", float("nan"))
-            lines.append(
-                f"  Dependence: {100 * ov['advised_fraction']:.1f}% of the stored transitions are the advisor's; "
-                f"where it acted, the actor's own action lay {gap:.2f} from it on average "
-                f"(within {ov.get('agree_tol', 0.1):g} in {100 * agree:.0f}% of rows)"
-                + (f"; trigger phased out to {ov['phase']:.2f} of d_th / fp" if ov.get("phase", 1.0) < 1.0 else "") + "."
-            )
-        calls = ov.get("advisor/calls")
-        if kind == "llm" and calls is not None:
-            n = max(float(calls), 1.0)
-            lines.append(
-                f"  LLM: {int(calls):,} HTTP calls ({1000 * calls / f_:.1f} per 1000 frames), "
-                f"{int(ov.get('advisor/cache_hits', 0)):,} cache hits; per call p50 {ov.get('advisor/latency_p50_s', float('nan')):.2f} s, "
-                f"p95 {ov.get('advisor/latency_p95_s', float('nan')):.2f} s, "
-                f"{ov.get('advisor/prompt_tokens', 0) / n:.0f} prompt + {ov.get('advisor/completion_tokens', 0) / n:.0f} "
-                f"completion tokens; the loop waited {ov.get('advice_wait_s', 0.0):.1f} s for answers"
-                + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
-                   if summary.get("overlap_s") else "") + "."
-            )
-    la = summary.get("llm_alone")
-    if la:
-        c = la["cost"]
-        lines.append(
-            f"  LLM alone: {la['episodes_scored']} of {la['episodes_total']} episodes scored "
-            f"({la['chunks_done']} of {la['chunks']} chunks of {la['chunk']} scenarios"
-            + ("" if la["complete"] else f"; paused by the call budget {la['budget']}, the same command continues") + "); "
-            f"{int(c['calls']):,} LLM decisions in {c['wall_s']:.0f} s ({c['calls_per_s']:.2f}/s) over "
-            f"{int(c['invocations'])} invocation(s), {int(c['fallbacks']):,} answered by the fallback."
-        )
-    lines.append("")
-    for pic in summary.get("pictures", []):
-        lines.append(f"Pictures: {pic}")
-    lines.append(f"All numbers: {summary['run_dir']}/final_metrics.json and summary.json; "
-                 f"curves: {summary['run_dir']}/logs/scalars/")
-    return "\n".join(lines)
-
-
-def _pictures(run_dir: Path, frames: int) -> list[str]:
-    out = []
-    for d in (train_eval_dir(run_dir, frames), run_dir / "eval" / "baseline_heuristic", run_dir / "eval" / "baseline_random"):
-        if any(d.glob("trajectory_*.png")):
-            out.append(str(d / "trajectory_*.png"))
+def _baselines(cfg: DictConfig, evaluation: Evaluation, run_dir: Path) -> dict[str, float]:
+    """The greedy heuristic and a uniform-random policy on the same evaluation set."""
+    env_cfg = evaluation.evaluator.env_cfg
+    policies = {"heuristic": make_heuristic(cfg, env_cfg),
+                "random": UniformRandomPolicy(evaluation.evaluator.env.action_spec, seed=int(cfg.trainer.eval_seed))}
+    out: dict[str, float] = {}
+    for name, policy in policies.items():
+        flight = evaluation.fly(policy, run_dir / "eval" / f"baseline_{name}", title=name)
+        out.update(_prefixed(f"baseline/{name}", flight.metrics))
     return out
-
-
-def _advised_row(final: dict[str, Any], name: str) -> dict[str, dict[str, float]]:
-    agg = {k.split("/", 1)[1]: v for k, v in final.items() if k.startswith("advised/") and k.count("/") == 1}
-    return {f"{name} (actor with its advisor)": agg} if agg else {}
-
-
-def _baseline_rows(final: dict[str, Any]) -> dict[str, dict[str, float]]:
-    rows: dict[str, dict[str, float]] = {}
-    for key, v in final.items():
-        if key.startswith("baseline/"):
-            _, who, metric = key.split("/", 2)
-            rows.setdefault(who, {})[metric] = v
-    return {("uniform random" if who == "random" else who): agg for who, agg in rows.items()}
-
-
-def _full_run_frames() -> int:
-    return int(OmegaConf.load(CONF_DIR / "trainer" / "default.yaml").total_frames)
-
-
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train (or evaluate a controller) as ``cfg`` says; returns the final metrics."""
-    # A multirun worker runs job after job in one process: the graphs compiled for an earlier
-    # job's env would count against this job's recompile limit (and fail it under fullgraph).
-    torch.compiler.reset()
-    state, final = reuse_state(cfg)
-    if state == "done":
-        log.info("%s: finished already (experiment.reuse): %s", cfg.name, Path(cfg.run_dir) / "final_metrics.json")
-        return final  # type: ignore[return-value]
-    if state == "resume":
-        cfg = cfg.copy()
-        OmegaConf.set_struct(cfg, False)
-        cfg.resume = str(cfg.run_dir)
-        OmegaConf.set_struct(cfg, True)
-    cfg, ckpt = _prepare(cfg)
-    torch.set_num_threads(int(cfg.threads))
-    tr = make_trainer_config(cfg.trainer)
-    env_cfg = make_env_config(cfg.env)
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    resolved = _resolved(cfg)
-    dump_json(run_dir / "config.json", resolved)
-    yaml_text = OmegaConf.to_yaml(OmegaConf.create(resolved))
-    atomic_write(run_dir / "config.yaml", lambda fh: fh.write(yaml_text.encode("utf-8")))
-    meta = run_metadata(resolved)
-    dump_json(run_dir / "meta.json", meta)
-
-    run_id = ckpt["logger"]["run_id"] if ckpt else f"{cfg.name}-{uuid.uuid4().hex[:10]}"
-    if ckpt:
-        trim_csv_scalars(run_dir / "logs", int(ckpt["counters"]["frames"]))
-    logger = make_logger(cfg, run_dir, run_id, {**resolved, "meta": meta})
-    if ckpt:
-        logger.load_state_dict(ckpt["logger"])
-
-    scenarios = load_or_make_eval_set(env_cfg, eval_set_path(run_dir, tr.eval_set), tr.eval_episodes, tr.eval_seed)
-    evaluator = Evaluator(
-        env_cfg,
-        scenarios,
-        seed=tr.eval_seed,
-        max_steps=tr.eval_max_steps,
-        n_plots=tr.eval_plots,
-        device=cfg.device,
-        compile_step=tr.compile_env,
-    )
-    try:
-        if cfg.controller != "learner":
-            return _evaluate_controller(cfg, env_cfg, evaluator, logger, run_dir)
-        return _train(cfg, tr, env_cfg, evaluator, logger, run_dir, ckpt)
-    finally:
-        logger.close()
-
-
-def _evaluate_controller(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path) -> dict[str, Any]:
-    """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
-    (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`)."""
-    if cfg.controller == "llm":
-        return _evaluate_llm_alone(cfg, env_cfg, evaluator, logger, run_dir)
-    controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
-    t0 = time.perf_counter()
-    try:
-        agg = evaluator.run(controller, train_eval_dir(run_dir, 0), title=str(cfg.name))
-        totals = controller.run_totals() if hasattr(controller, "run_totals") else None
-        stats = controller.snapshot() if hasattr(controller, "snapshot") else {}
-    finally:
-        close = getattr(controller, "close", None)
-        if close is not None:
-            close()
-    metrics = {**_prefixed("eval", agg), **_prefixed("override", stats), "time/eval_s": time.perf_counter() - t0}
-    logger.log_metrics(metrics, step=0)
-    logger.log_images(_trajectory_images(train_eval_dir(run_dir, 0)), step=0)
-    final = {"frames": 0, **metrics}
-    dump_json(run_dir / "final_metrics.json", final)
-    write_summary(run_dir, {
-        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
-        "eval_episodes": len(evaluator.scenarios), "metrics": {str(cfg.name): agg},
-        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
-    })
-    log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
-    return final
-
-
-def _evaluate_llm_alone(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path) -> dict[str, Any]:
-    """``+exp=llm``: :class:`uavlae.llm_alone.LLMAloneEvaluation` on the run's evaluation set.
-    A run paused by its call budget writes its final metrics with ``eval/complete`` 0 (the
-    scored episodes only, ``eval/episodes_scored`` of ``eval/episodes_total``); the same
-    command continues it. The cost goes under ``llm/``."""
-    from uavlae.llm_alone import LLMAloneEvaluation
-
-    tr = make_trainer_config(cfg.trainer)
-    fingerprint = _comparable(_resolved(cfg))
-    fingerprint.pop("run_dir", None)  # a moved run folder still continues
-    out = train_eval_dir(run_dir, 0)
-    controller = make_controller(cfg, env_cfg, action_spec=evaluator.env.action_spec)
-    try:
-        ev = LLMAloneEvaluation(
-            env_cfg, evaluator.scenarios, controller, out, seed=tr.eval_seed, chunk=tr.eval_chunk,
-            max_steps=tr.eval_max_steps, budget=tr.llm_call_budget, fingerprint=fingerprint,
-            n_plots=tr.eval_plots, device=cfg.device, shard=tr.eval_shard, shards=tr.eval_shards,
-        )
-        res = ev.run()
-        totals = controller.run_totals()
-    finally:
-        controller.close()
-    ev.write(res, title=str(cfg.name))
-    agg = res["metrics"]
-    progress = {"complete": int(res["complete"]), "episodes_scored": res["episodes_scored"],
-                "episodes_total": res["episodes_total"], "chunks_done": res["chunks_done"], "chunks": res["chunks"]}
-    metrics = {**_prefixed("eval", {**agg, **progress}), **_prefixed("llm", res["cost"]),
-               **_prefixed("override", totals), "time/eval_s": res["cost"]["wall_s"]}
-    logger.log_metrics(metrics, step=0)
-    if res["trajectories"]:
-        logger.log_images(_trajectory_images(out), step=0)
-    final = {"frames": 0, **metrics}
-    dump_json(run_dir / "final_metrics.json", final)
-    write_summary(run_dir, {
-        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
-        "eval_episodes": res["episodes_scored"], "metrics": {str(cfg.name): agg},
-        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": _pictures(run_dir, 0),
-        "llm_alone": {**progress, "in_flight_step": res["in_flight_step"], "cost": res["cost"],
-                      "budget": tr.llm_call_budget, "chunk": ev.chunk, "shard": ev.shard, "shards": ev.shards},
-    })
-    state = "complete" if res["complete"] else (
-        f"paused by the call budget ({res['chunks_done']}/{res['chunks']} chunks done); run the same command to continue")
-    log.info("%s: %d of %d episodes scored, %s: %s", cfg.name, res["episodes_scored"], res["episodes_total"], state,
-             {k: round(agg[k], 4) for k in PAPER_METRICS})
-    return final
-
-
-def _train(
-    cfg: DictConfig, tr: Any, env_cfg: Any, evaluator: Evaluator, logger: Any, run_dir: Path, ckpt: dict[str, Any] | None
-) -> dict[str, Any]:
-    seed_everything(int(cfg.seed))
-    env = make_env(env_cfg, tr.env_batch_size, seed=int(cfg.seed), device=cfg.device, compile_step=tr.compile_env)
-    learner = make_learner(cfg.algo, env)
-    off_policy = cfg.algo.name in OFF_POLICY
-    has_advisor = cfg.advisor.kind != "none"
-    policy = make_policy(cfg, behaviour_actor(learner), env_cfg)
-    replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=int(cfg.seed)) if off_policy else None
-    counters: dict[str, Any] = {"frames": 0, "episodes": 0, "batches": 0, "updates": 0, "utd_debt": 0.0, "next_eval": 0,
-                                "next_ckpt": 0, "update_s": 0.0, "overlap_s": 0.0, "wall_s": 0.0}
-    counters["next_eval"] = tr.eval_every_frames or tr.total_frames
-    counters["next_ckpt"] = tr.checkpoint_every_frames or tr.total_frames
-    updates = OffPolicyUpdates(learner, replay, tr, counters) if off_policy else None
-    bar = progress_for(cfg, tr, int(ckpt["counters"]["frames"]) if ckpt else 0)
-    collector = UAVCollector(
-        env,
-        policy,
-        frames_per_batch=tr.frames_per_batch,
-        total_frames=tr.total_frames,
-        init_random_frames=tr.init_random_frames if off_policy else 0,
-        # not "loc"/"scale": the random warm-up does not write them, and a batch that straddles
-        # init_random_frames would then stack steps with different keys
-        keep_keys=TRANSITION_KEYS,
-        seed=int(cfg.seed),
-        between=updates.run if updates is not None else None,
-        on_step=updates.add if updates is not None else None,
-        overlap=tr.overlap_advice,
-        on_frames=bar.advance,
-    )
-    last_eval: dict[str, float] = {}
-    if ckpt:
-        learner.load_state_dict(ckpt["learner"])
-        collector.load_state_dict(ckpt["collector"])
-        if replay is not None and ckpt.get("replay_buffer") is not None:
-            replay.load_state_dict(ckpt["replay_buffer"])
-        counters.update(ckpt["counters"])
-        last_eval = dict(ckpt.get("last_eval", {}))
-        set_rng_state(ckpt["rng"])  # last: building the modules above drew from the global RNG
-
-    def checkpoint(final: bool = False) -> Path:
-        # a finished run keeps its networks, not its buffer (gigabytes), unless asked to
-        keep_replay = tr.checkpoint_replay_buffer and (not final or tr.keep_replay_at_end)
-        state = {
-            "learner": learner.state_dict(),
-            "collector": collector.state_dict(),
-            "replay_buffer": replay.state_dict() if (replay is not None and keep_replay) else None,
-            "rng": rng_state(),
-            "counters": dict(counters),
-            "last_eval": dict(last_eval),
-            "logger": logger.state_dict(),
-            "config": _resolved(cfg),
-        }
-        path = save_checkpoint(state, run_dir, keep=tr.keep_checkpoints)
-        if final and not keep_replay:
-            (path.parent / "prev.pt").unlink(missing_ok=True)  # the one before still holds a buffer
-        return path
-
-    def evaluate(frames: int) -> dict[str, float]:
-        out = train_eval_dir(run_dir, frames)
-        agg = evaluator.run(deterministic_actor(learner), out, title=f"{cfg.name} @ {frames} frames")
-        logger.log_metrics({**_prefixed("eval", agg), "eval/episodes_trained": counters["episodes"]}, step=frames)
-        logger.log_images(_trajectory_images(out), step=frames)
-        return agg
-
-    def budget_spent() -> bool:
-        """The frame budget, or the episode budget (paper: 4000 episodes) when one is set."""
-        episodes_done = tr.total_episodes is not None and counters["episodes"] >= tr.total_episodes
-        return counters["frames"] >= tr.total_frames or episodes_done
-
-    t_start, frames_start, wall_start = time.perf_counter(), counters["frames"], float(counters["wall_s"])
-    train_logs: dict[str, float] = {}
-    timing = dict(collector.timing)
-    t_iter = time.perf_counter()  # collection and updates count as training time; evaluation does not
-    try:
-        for batch in () if budget_spent() else collector:
-            t_batch = time.perf_counter()
-            frames = collector.frames
-            n_new = batch.numel()
-            counters["frames"] = frames
-            counters["batches"] += 1
-            counters["episodes"] += int(batch.get(("next", "done")).sum())
-            counters["wall_s"] = wall_start + (t_batch - t_start)  # training wall clock over every resumed part
-            if off_policy:
-                noise = getattr(learner, "noise", None)
-                if noise is not None and hasattr(noise, "step"):
-                    noise.step(n_new)  # DDPG: anneal the exploration noise by frames
-                if budget_spent():
-                    updates.flush()  # the last step's gradient steps have no next step to run in
-                train_logs = updates.logs
-            else:
-                train_logs = learner.update(batch)
-                counters["updates"] += 1
-            # the updates ran inside the batch's steps (off-policy) or just now (on-policy)
-            t_update = collector.timing["between_s"] - timing["between_s"] + (time.perf_counter() - t_batch)
-            t_overlap = collector.timing["overlap_s"] - timing["overlap_s"]
-            timing = dict(collector.timing)
-            counters["update_s"] += t_update
-            counters["overlap_s"] += t_overlap
-
-            if counters["batches"] % tr.log_every_batches == 0:
-                _, episodes = collector.episode_metrics()
-                elapsed = time.perf_counter() - t_start
-                metrics = {
-                    **_prefixed("train", train_logs),
-                    **_prefixed("episode", episodes),
-                    **(_prefixed("override", collector.override_stats(reset=True)) if has_advisor else {}),
-                    "time/fps": (frames - frames_start) / max(elapsed, 1e-9),
-                    "time/update_s": t_update,
-                    "time/update_overlap_s": t_overlap,
-                    "train/updates": counters["updates"],
-                    "train/episodes": counters["episodes"],
-                    "train/replay_size": len(replay) if replay is not None else 0,
-                }
-                logger.log_metrics(metrics, step=frames)
-            counters["train_s"] = counters.get("train_s", 0.0) + (time.perf_counter() - t_iter)
-            finished = budget_spent()
-            if frames >= counters["next_eval"] or finished:
-                last_eval = evaluate(frames)
-                counters["last_eval_frames"] = frames
-                every = tr.eval_every_frames or tr.total_frames
-                counters["next_eval"] = (frames // every + 1) * every
-            if frames >= counters["next_ckpt"] or finished:
-                every = tr.checkpoint_every_frames or tr.total_frames
-                counters["next_ckpt"] = (frames // every + 1) * every
-                checkpoint(final=finished)
-            bar.batch_done(frames, last_eval, counters.get("last_eval_frames"))
-            t_iter = time.perf_counter()
-            if finished:
-                break
-    finally:
-        bar.close()
-        collector.shutdown()
-
-    if counters.get("last_eval_frames") != counters["frames"]:  # resumed after the final batch
-        last_eval = evaluate(counters["frames"])
-        counters["last_eval_frames"] = counters["frames"]
-    final = {
-        "frames": counters["frames"],
-        "episodes": counters["episodes"],
-        "updates": counters["updates"],
-        "wall_s": round(float(counters["wall_s"]), 1),
-        **_prefixed("eval", last_eval),
-        "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in learner.actor.parameters())),
-    }
-    if has_advisor:
-        final.update(_prefixed("override", _deterministic_counts(policy.run_totals())))
-        if tr.eval_with_advisor:
-            final.update(_advised_evaluation(policy, evaluator, run_dir, tr, str(cfg.name)))
-    t_base = time.perf_counter()
-    if tr.baselines:
-        final.update(_baselines(cfg, env_cfg, evaluator, run_dir))
-    dump_json(run_dir / "final_metrics.json", final)
-    baselines_s = time.perf_counter() - t_base
-    train_s = counters.get("train_s", 0.0)
-    write_summary(run_dir, {
-        "name": str(cfg.name), "controller": "learner", "run_dir": str(run_dir), "frames": counters["frames"],
-        "full_run_frames": _full_run_frames(), "updates": counters["updates"], "train_s": train_s,
-        "fps": counters["frames"] / train_s if train_s else None,
-        "update_s": counters["update_s"], "overlap_s": counters["overlap_s"], "baselines_s": baselines_s,
-        "eval_episodes": len(evaluator.scenarios),
-        "metrics": {f"{cfg.name} (trained actor)": last_eval, **_advised_row(final, str(cfg.name)), **_baseline_rows(final)},
-        "advisor_kind": str(cfg.advisor.kind), "override": policy.run_totals() if has_advisor else None,
-        "pictures": _pictures(run_dir, counters["frames"]),
-    })
-    log.info("%s done at %d frames: %s", cfg.name, counters["frames"], {k: round(last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
-    return final
 
 
 def _trajectory_images(eval_dir: Path) -> dict[str, Path]:
     return {f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}": p for p in sorted(eval_dir.glob("trajectory_*.png"))}
 
 
+# ---------------------------------------------------------------------------- building a run
+
+
+def build_training(cfg: DictConfig, run_dir: Path, logger: Any, evaluation: Evaluation,
+                   ckpt: dict[str, Any] | None) -> Training:
+    """The env, learner, collection policy, replay buffer and collector of ``cfg``, restored
+    from ``ckpt`` when resuming."""
+    tr = make_trainer_config(cfg.trainer)
+    seed = int(cfg.seed)
+    seed_everything(seed)
+    env = make_env(cfg.env, tr.env_batch_size, seed=seed, device=cfg.device, compile_step=tr.compile_env)
+    learner = make_learner(cfg.algo, env)
+    policy = make_policy(cfg, learner.behaviour, make_env_config(cfg.env))
+    replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=seed) if learner.off_policy else None
+    counters: dict[str, Any] = {"frames": 0, "episodes": 0, "batches": 0, "updates": 0, "utd_debt": 0.0,
+                                "next_eval": tr.eval_every_frames or tr.total_frames,
+                                "next_ckpt": tr.checkpoint_every_frames or tr.total_frames,
+                                "update_s": 0.0, "overlap_s": 0.0, "wall_s": 0.0}
+    # not "loc"/"scale": the random warm-up does not write them, and a batch that straddles
+    # init_random_frames would then stack steps with different keys
+    collector = UAVCollector(env, policy, frames_per_batch=tr.frames_per_batch, total_frames=tr.total_frames,
+                             init_random_frames=tr.init_random_frames if learner.off_policy else 0,
+                             keep_keys=TRANSITION_KEYS, seed=seed)
+    updates = Updates(learner, replay, tr, counters) if learner.off_policy else None
+    t = Training(cfg, tr, run_dir, logger, evaluation, env, learner, policy, collector, replay, updates, counters)
+    if ckpt:
+        _restore(t, ckpt)
+    t.frames_start = t.frames
+    return t
+
+
+def _restore(t: Training, ckpt: dict[str, Any]) -> None:
+    if t.replay is not None and ckpt.get("replay_buffer") is None and ckpt["counters"]["frames"] < t.tr.total_frames:
+        raise ValueError(
+            f"{t.run_dir}: its checkpoint holds no replay buffer (the run finished with "
+            "trainer.keep_replay_at_end=false), so it cannot continue exactly; train it anew, or keep the buffer "
+            "of runs meant to be extended"
+        )
+    t.learner.load_state_dict(ckpt["learner"])
+    t.collector.load_state_dict(ckpt["collector"])
+    t.collector.total_frames = t.tr.total_frames
+    if t.replay is not None:
+        t.replay.load_state_dict(ckpt["replay_buffer"])
+    t.counters.update(ckpt["counters"])
+    t.last_eval = dict(ckpt.get("last_eval", {}))
+    set_rng_state(ckpt["rng"])  # last: building the modules above drew from the global RNG
+
+
+def _open_run(cfg: DictConfig, run_dir: Path, ckpt: dict[str, Any] | None) -> tuple[Any, Any]:
+    """Write the run's config and metadata; the logger (continuing a resumed run's) and the
+    evaluation on the run's fixed set."""
+    tr = make_trainer_config(cfg.trainer)
+    env_cfg = make_env_config(cfg.env)
+    scenarios = load_or_make_eval_set(env_cfg, eval_set_path(run_dir, tr.eval_set), tr.eval_episodes, tr.eval_seed,
+                                      sample=tr.sample_eval_set or tr.eval_set is None)
+    resolved = _resolved(cfg)
+    dump_json(run_dir / "config.json", resolved)
+    yaml_text = OmegaConf.to_yaml(OmegaConf.create(resolved))
+    atomic_write(run_dir / "config.yaml", lambda fh: fh.write(yaml_text.encode("utf-8")))
+    meta = run_metadata(resolved)
+    dump_json(run_dir / "meta.json", meta)
+    run_id = ckpt["logger"]["run_id"] if ckpt else f"{cfg.name}-{uuid.uuid4().hex[:10]}"
+    if ckpt:
+        trim_csv_scalars(run_dir / "logs", int(ckpt["counters"]["frames"]))
+    logger = make_logger(cfg, run_dir, run_id, {**resolved, "meta": meta}, resume=ckpt is not None)
+    if ckpt:
+        logger.load_state_dict(ckpt["logger"])
+    fingerprint = _fingerprint(cfg) if cfg.controller == "llm" else None
+    evaluation = make_evaluation(cfg, env_cfg, scenarios, compile_step=tr.compile_env, fingerprint=fingerprint)
+    return logger, evaluation
+
+
+def run(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[str, Any]:
+    """Train (or evaluate a controller) as ``cfg`` says; returns the final metrics.
+    ``overrides``: the command line's ``key=value`` list, checked against a resumed run."""
+    # A multirun worker runs job after job in one process: the graphs compiled for an earlier
+    # job's env would count against this job's recompile limit (and fail it under fullgraph).
+    torch.compiler.reset()
+    keys = command_line_keys(cfg, overrides) if cfg.resume else None
+    cfg = OmegaConf.create(_resolved(cfg))
+    OmegaConf.set_struct(cfg, True)
+    check_run(cfg, budgets=not cfg.resume)
+    run_dir = run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)
+    with RunFolder(run_dir, lock_name(cfg)) as folder:
+        p = plan(cfg, keys)
+        if p.kind == "done":
+            log.info("%s: finished already: %s", p.cfg.name, run_dir / "final_metrics.json")
+            return p.final  # type: ignore[return-value]
+        if p.clean:
+            folder.clean()
+        cfg = p.cfg
+        OmegaConf.set_struct(cfg, True)
+        check_run(cfg)
+        if p.ckpt:
+            log.info("resuming %s from %s at %d frames", cfg.name, cfg.resume, p.ckpt["counters"]["frames"])
+        torch.set_num_threads(int(cfg.threads))
+        logger, evaluation = _open_run(cfg, run_dir, p.ckpt)
+        try:
+            if cfg.controller != "learner":
+                return evaluate_controller(cfg, evaluation, logger, run_dir)
+            with GracefulStop() as stop:
+                return train(build_training(cfg, run_dir, logger, evaluation, p.ckpt), stop)
+        finally:
+            logger.close()
+
+
+def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, run_dir: Path) -> dict[str, Any]:
+    """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
+    (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`; a run
+    paused by its budget writes its final metrics with ``eval/complete`` 0, and the same command
+    continues it)."""
+    env_cfg = evaluation.evaluator.env_cfg
+    controller = make_flyer(cfg, env_cfg, evaluation.evaluator.env.action_spec)
+    out = train_eval_dir(run_dir, 0)
+    t0 = time.perf_counter()
+    try:
+        flight = evaluation.fly(controller, out, title=str(cfg.name))
+        totals = controller.run_totals() if cfg.controller == "llm" else None
+    finally:
+        if isinstance(controller, OverridePolicy):
+            controller.close()  # the LLM's client, and the local server it started
+    metrics = {**_prefixed("eval", flight.metrics), **_prefixed("override", flight.stats),
+               "time/eval_s": time.perf_counter() - t0}
+    la = flight.llm_alone
+    if la is not None:
+        progress = {k: la[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks")}
+        metrics.update({**_prefixed("eval", {k: int(v) for k, v in progress.items()}), **_prefixed("llm", la["cost"]),
+                        "time/eval_s": la["cost"]["wall_s"]})
+    logger.log_metrics(metrics, step=0)
+    logger.log_images(_trajectory_images(out), step=0)
+    final = {"frames": 0, **metrics}
+    dump_json(run_dir / "final_metrics.json", final)
+    write_summary(run_dir, {
+        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
+        "eval_episodes": la["episodes_scored"] if la else len(evaluation.scenarios), "metrics": {str(cfg.name): flight.metrics},
+        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": pictures(run_dir, 0),
+        "llm_alone": None if la is None else {k: v for k, v in la.items() if k != "records"},
+    })
+    _log_controller(cfg, flight)
+    return final
+
+
+def _log_controller(cfg: DictConfig, flight: Flight) -> None:
+    agg, la = flight.metrics, flight.llm_alone
+    if la is None:
+        log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
+        return
+    state = "complete" if la["complete"] else (
+        f"paused by the call budget ({la['chunks_done']}/{la['chunks']} chunks done); run the same command to continue")
+    log.info("%s: %d of %d episodes scored, %s: %s", cfg.name, la["episodes_scored"], la["episodes_total"], state,
+             {k: round(agg[k], 4) for k in PAPER_METRICS})
+
+
+def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
+    """What :func:`uavlae.lifecycle.plan` decides for ``cfg`` (a sweep re-run): ``("done",
+    final metrics)``, ``("resume", None)`` or ``("new", None)``."""
+    cfg = OmegaConf.create(_resolved(cfg))
+    p: Plan = plan(cfg)
+    return p.kind, p.final
+
+
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
     # one INFO line per HTTP request buries the progress bar; the LLM counters are in the logs
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    final = run(cfg)
-    summary = (run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)) / "summary.json"
+    try:
+        final = run(cfg, list(HydraConfig.get().overrides.task))
+    except RunStopped as stopped:
+        print(str(stopped), file=sys.stderr)
+        sys.exit(128 + stopped.signum)
+    run_dir = run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)
+    summary = run_dir / "summary.json"
     if summary.is_file():
         print(format_summary(json.loads(summary.read_text())))
     else:

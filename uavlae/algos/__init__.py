@@ -1,14 +1,17 @@
 """Learners on torchrl.objectives, one module each; ``make_learner`` dispatches on ``cfg.name``.
 
-Every learner has ``actor`` (the acting policy), ``update(batch) -> dict[str, float]``,
-``state_dict()`` / ``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample
-``[N]``; on-policy (ppo, cpo, wang, theile): a collector batch ``[*B, T]``, time last.
+Every learner follows :class:`Learner`: ``actor`` (evaluated and deployed, deterministically),
+``behaviour`` (what acts while collecting), ``off_policy``, ``anneal(frames)`` (the schedules
+that follow training progress), ``update(batch) -> dict[str, float]``, ``state_dict()`` /
+``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample ``[N]``; on-policy
+(ppo, cpo, wang, theile): a collector batch ``[*B, T]``, time last.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Protocol
 
+from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
 from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
@@ -24,7 +27,25 @@ MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_l
 NEEDS_LAYOUT = frozenset({"wang", "theile"})
 OFF_POLICY = frozenset({"sac", "ddpg"})
 
-Learner = SAC | DDPG | PPO | PPOLagrangian | Wang | Theile
+
+class Learner(Protocol):
+    """What the training loop, the evaluator and the checkpoints need of a learner."""
+
+    off_policy: bool  # True: update() takes replay samples, the loop keeps a replay buffer
+    actor: Any  # the policy evaluated and deployed (deterministic under ExplorationType.DETERMINISTIC)
+
+    @property
+    def behaviour(self) -> Any:
+        """The policy that acts while collecting (DDPG: the actor with its exploration noise)."""
+
+    def anneal(self, frames: int) -> None:
+        """Told the frames collected so far before its updates (noise, cloning weight)."""
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec, layout: Any = None) -> Learner:

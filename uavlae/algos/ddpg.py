@@ -6,13 +6,13 @@ docs/model.md §8: same network sizes as SAC (2x64); learning rates as SAC's Tab
 ``("next", "observation")``, ``("next", "reward")``, ``("next", "done")``,
 ``("next", "terminated")`` and does one gradient step on actor and critic, then one soft update
 of both target networks. The behaviour policy is ``exploration_policy`` (actor + annealed
-noise); call ``noise.step(frames)`` once per collected batch.
+noise), its noise annealed by ``anneal(frames)``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field, model_validator
@@ -78,15 +78,24 @@ class DDPG:
     cfg: DDPGConfig
     actor: TensorDictSequential  # deterministic; evaluation policy
     exploration_policy: TensorDictSequential  # actor + noise; collection policy
-    noise: nn.Module  # call .step(frames) after each collected batch
+    noise: nn.Module  # annealed by anneal(frames)
     loss: DDPGLoss
     optimisers: dict[str, torch.optim.Optimizer]
     target_updater: SoftUpdate
     num_updates: int = 0
+    noise_frames: int | None = 0  # the frames the noise has been annealed over (None: not known)
+    off_policy: ClassVar[bool] = True
+
+    @property
+    def behaviour(self) -> TensorDictSequential:
+        """What acts while collecting: the actor with its exploration noise."""
+        return self.exploration_policy
 
     def anneal(self, frames: int) -> None:
-        """Schedules that follow training progress: none here (the exploration noise steps per
-        collected batch, ``noise.step``)."""
+        """The exploration noise, annealed over the frames collected so far."""
+        if self.noise_frames is not None and frames > self.noise_frames:
+            self.noise.step(frames - self.noise_frames)
+        self.noise_frames = frames
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""
@@ -106,10 +115,12 @@ class DDPG:
 
     def state_dict(self) -> dict[str, Any]:
         """Actor, critic, both targets (in ``loss``), optimisers, the annealed noise, counters."""
-        return parts_state_dict(self._parts(), self.num_updates)
+        return {**parts_state_dict(self._parts(), self.num_updates), "noise_frames": self.noise_frames}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.num_updates = load_parts_state_dict(self._parts(), state)
+        # a checkpoint from before the noise counted its frames: the next anneal only takes note
+        self.noise_frames = state.get("noise_frames")
 
 
 def make_ddpg(cfg: DDPGConfig | Any, obs_dim: int, action_spec: TensorSpec) -> DDPG:

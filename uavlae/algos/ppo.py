@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field
@@ -120,6 +120,16 @@ class PPO:
     gae: GAE
     optimisers: dict[str, torch.optim.Optimizer]
     num_updates: int = 0
+
+    off_policy: ClassVar[bool] = False
+
+    @property
+    def behaviour(self) -> ProbabilisticActor:
+        """What acts while collecting: the actor, sampling (it writes the log-probabilities)."""
+        return self.actor
+
+    def anneal(self, frames: int) -> None:
+        """Schedules that follow training progress: none."""
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field
@@ -231,6 +231,16 @@ class PPOLagrangian:
     optimisers: dict[str, torch.optim.Optimizer]
     num_updates: int = 0
     last_cost: float | None = None  # the latest measured J_c (logged while no episode ends)
+
+    off_policy: ClassVar[bool] = False
+
+    @property
+    def behaviour(self) -> ProbabilisticActor:
+        """What acts while collecting: the actor, sampling (it writes the log-probabilities)."""
+        return self.actor
+
+    def anneal(self, frames: int) -> None:
+        """Schedules that follow training progress: none."""
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self.loss(mb)

@@ -33,7 +33,7 @@ means the same in worlds whose returns differ by orders of magnitude.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field, model_validator
@@ -126,6 +126,7 @@ class SAC:
     target_updater: SoftUpdate  # owns the source/target pairing and tau
     num_updates: int = 0
     clone_now: float = 0.0  # the cloning weight at the current frame (anneal), before clone_scale
+    off_policy: ClassVar[bool] = True
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
     _sources: list = field(default_factory=list, repr=False)
@@ -152,6 +153,11 @@ class SAC:
             if sorted(map(id, self._fused.params)) != sorted(id(p) for g in groups for p in g["params"]):
                 raise RuntimeError("the optimiser's parameters are not the loss's")  # make_sac bug
         self.anneal(0)
+
+    @property
+    def behaviour(self) -> ProbabilisticActor:
+        """What acts while collecting: the actor, sampling."""
+        return self.actor
 
     def anneal(self, frames: int) -> None:
         """The schedules that follow training progress: the cloning weight at ``frames``."""

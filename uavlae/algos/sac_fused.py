@@ -202,6 +202,28 @@ class FusedSACGrad:
             g = self.act_grad(g, pre[i - 1], x)
         return grads, g
 
+    def _clone(self, loc: torch.Tensor, act: torch.Tensor, mask: torch.Tensor, w: float,
+               inv_n: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The cloning term and its gradient with respect to ``loc`` (module doc)."""
+        t = loc.tanh()
+        det = t if self.box is None else t * self.box[1] + self.box[0]
+        diff = (det - act) * mask.reshape(-1, 1).to(det.dtype)
+        g_det = diff * (2.0 * w * inv_n)
+        if self.box is not None:
+            g_det = g_det * self.box[1]
+        return w * diff.square().sum(-1).mean(), g_det * (1 - t * t)
+
+    def _actor_back(self, g: torch.Tensor, cur: dict[str, torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """From the gradient at the actor's output (loc, raw scale) to its (weight, bias)
+        gradients, last layer first."""
+        a_grads: list[tuple[torch.Tensor, torch.Tensor]] = []
+        inputs, pre = cur["inputs"], cur["pre"]
+        for i in range(len(self.actor_layers) - 1, -1, -1):
+            a_grads.append((g.t() @ inputs[i], g.sum(0)))
+            if i > 0:
+                g = self.act_grad(g @ self.actor_layers[i][0], pre[i - 1], inputs[i])
+        return a_grads
+
     def grads(
         self, batch: TensorDictBase, clone_weight: float = 0.0, clone_mask: torch.Tensor | None = None,
         clone_relative: bool = False,
@@ -272,26 +294,13 @@ class FusedSACGrad:
         g_x = g_act * (1 - y * y) + g_lp * (2.0 - 4.0 * torch.sigmoid(-2.0 * x))
         g_scale = (g_x * cur["eps"] - g_lp / scale) * (cur["pre_scale"] >= self.scale_lb)
         g_raw = g_scale * torch.sigmoid(cur["raw"] + self.scale_bias)
-        g_loc = g_x  # x = loc + eps * scale
         loss_clone = torch.zeros((), dtype=obs.dtype)
+        g_loc = g_x  # x = loc + eps * scale
         if clone_weight > 0 and clone_mask is not None:
-            if clone_relative:
-                clone_weight = clone_weight * max(abs(float(loss_actor)), 1.0)
-            t = cur["loc"].tanh()
-            det = t if self.box is None else t * self.box[1] + self.box[0]
-            diff = (det - act) * clone_mask.reshape(-1, 1).to(det.dtype)
-            loss_clone = clone_weight * diff.square().sum(-1).mean()
-            g_det = diff * (2.0 * clone_weight * inv_n)
-            if self.box is not None:
-                g_det = g_det * self.box[1]
-            g_loc = g_x + g_det * (1 - t * t)
-        g = torch.cat([g_loc, g_raw], dim=1)
-        a_grads: list[tuple[torch.Tensor, torch.Tensor]] = []  # (weight, bias), last layer first
-        inputs, pre = cur["inputs"], cur["pre"]
-        for i in range(len(self.actor_layers) - 1, -1, -1):
-            a_grads.append((g.t() @ inputs[i], g.sum(0)))
-            if i > 0:
-                g = self.act_grad(g @ self.actor_layers[i][0], pre[i - 1], inputs[i])
+            w = clone_weight * (max(abs(float(loss_actor)), 1.0) if clone_relative else 1.0)
+            loss_clone, g_clone = self._clone(cur["loc"], act, clone_mask, w, inv_n)
+            g_loc = g_x + g_clone
+        a_grads = self._actor_back(torch.cat([g_loc, g_raw], dim=1), cur)
         loss_alpha = (-log_alpha * (logp + self.target_entropy)).mean()
         g_alpha = -(logp + self.target_entropy).mean()
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field
@@ -147,6 +147,16 @@ class Wang:
     rnd_optimiser: torch.optim.Optimizer
     intrinsic_std: RunningStd = field(default_factory=RunningStd)
     num_updates: int = 0
+
+    off_policy: ClassVar[bool] = False
+
+    @property
+    def behaviour(self) -> ProbabilisticActor:
+        """What acts while collecting: the actor, sampling (it writes the log-probabilities)."""
+        return self.actor
+
+    def anneal(self, frames: int) -> None:
+        """Schedules that follow training progress: none."""
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)

@@ -104,7 +104,6 @@ def draw_scenario(
     cfg = make_env_config(cfg)
     a = cfg.area
     scene = _scene(scenario_or_state, cfg, index)
-
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -114,82 +113,8 @@ def draw_scenario(
     ax.set_xlabel("x east [m]")
     ax.set_ylabel("y north [m]")
     ax.add_patch(Rectangle((0, 0), a.x_size, a.y_size, fill=False, edgecolor="black", lw=1.2))
-    handles: list[Any] = []
-
-    def rect(r: Sequence[float], face: str, edge: str, alpha: float, z: int, hatch: str | None = None) -> None:
-        ax.add_patch(
-            Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], facecolor=face, edgecolor=edge,
-                      alpha=alpha, lw=1.0, zorder=z, hatch=hatch)
-        )
-
-    ta = _np(scene["takeoff"]).reshape(4) if "takeoff" in scene else np.asarray(a.takeoff)
-    la = _np(scene["landing"]).reshape(4) if "landing" in scene else np.asarray(a.landing)
-    rect(ta, TA_COLOUR, TA_COLOUR, 0.5, 1)
-    rect(la, LA_COLOUR, LA_COLOUR, 0.5, 1)
-    handles += [Patch(color=TA_COLOUR, alpha=0.5, label="take-off area"),
-                Patch(color=LA_COLOUR, alpha=0.5, label="landing area")]
-    for name in ("rz", "nfz", "bz"):
-        face, edge, label = ZONE_STYLE[name]
-        rs = _rects(scene, name)
-        for r in rs:
-            rect(r, face, edge, 0.35 if name == "rz" else 0.6, 2 if name == "rz" else 3)
-        if len(rs):
-            handles.append(Patch(facecolor=face, edgecolor=edge, alpha=0.6, label=label))
-
-    # GEs: marker area grows with the data still to collect; collected ones are hollow
-    if "ge_pos" in scene:
-        pos = np.asarray(scene["ge_pos"], dtype=float).reshape(-1, 2)
-        mask = np.asarray(scene.get("ge_mask", np.ones(len(pos), bool)), dtype=bool).reshape(-1)
-        rem = scene.get("ge_remaining", scene.get("ge_data"))
-        rem = np.zeros(len(pos)) if rem is None else np.asarray(rem, dtype=float).reshape(-1)
-        pos, rem = pos[mask], rem[mask]
-        size = 15.0 + 70.0 * np.clip(rem / cfg.ge.data_max, 0.0, 1.0)
-        full = rem > 0
-        if full.any():
-            ax.scatter(pos[full, 0], pos[full, 1], s=size[full], color=GE_COLOUR, zorder=5)
-            handles.append(Line2D([], [], ls="", marker="o", color=GE_COLOUR, label="GE (size: data left)"))
-        if (~full).any():
-            ax.scatter(pos[~full, 0], pos[~full, 1], s=size[~full], facecolors="none",
-                       edgecolors=GE_COLOUR, zorder=5)
-            handles.append(Line2D([], [], ls="", marker="o", mfc="none", color=GE_COLOUR, label="GE collected"))
-
-    # other UAVs with their velocity
-    if "ou_pos" in scene:
-        pos = np.asarray(scene["ou_pos"], dtype=float).reshape(-1, 2)
-        mask = np.asarray(scene.get("ou_mask", np.ones(len(pos), bool)), dtype=bool).reshape(-1)
-        vel = np.asarray(scene.get("ou_vel", np.zeros_like(pos)), dtype=float).reshape(-1, 2)
-        pos, vel = pos[mask], vel[mask]
-        if len(pos):
-            ax.scatter(pos[:, 0], pos[:, 1], marker="^", s=40, color=OU_COLOUR, zorder=6)
-            ax.quiver(pos[:, 0], pos[:, 1], vel[:, 0] * OU_ARROW_SECONDS, vel[:, 1] * OU_ARROW_SECONDS,
-                      angles="xy", scale_units="xy", scale=1.0, color=OU_COLOUR, width=0.004, zorder=6)
-            handles.append(Line2D([], [], ls="", marker="^", color=OU_COLOUR,
-                                  label=f"other UAV (arrow: {OU_ARROW_SECONDS:g} s)"))
-
-    # the DCU: its start (scenario) or current position (state)
-    dcu = scene.get("position", scene.get("start"))
-    if dcu is not None:
-        d = np.asarray(dcu, dtype=float).reshape(2)
-        ax.scatter([d[0]], [d[1]], marker="*", s=140, color="black", zorder=8)
-        handles.append(Line2D([], [], ls="", marker="*", ms=10, color="black",
-                              label="DCU" if "position" in scene else "start"))
-
-    trajs = _as_trajectories(trajectories)
-    cmap = matplotlib.colormaps["tab10"]
-    for i, t in enumerate(trajs):
-        if len(t) == 0:
-            continue
-        colour = cmap(i % 10)
-        label = labels[i] if labels is not None and i < len(labels) else ("trajectory" if len(trajs) == 1 else f"trajectory {i}")
-        (line,) = ax.plot(t[:, 0], t[:, 1], "-", lw=1.6, color=colour, zorder=7, label=label)
-        colour = line.get_color()
-        ax.plot(t[0, 0], t[0, 1], "o", ms=6, color=colour, zorder=9)
-        ax.plot(t[-1, 0], t[-1, 1], "s", ms=6, mfc="white", mec=colour, mew=1.8, zorder=9)
-        handles.append(line)
-    if trajs:
-        handles += [Line2D([], [], ls="", marker="o", color="grey", label="trajectory start"),
-                    Line2D([], [], ls="", marker="s", mfc="white", mec="grey", label="trajectory end")]
-
+    handles = _draw_zones(ax, scene, cfg) + _draw_ges(ax, scene, cfg) + _draw_ous(ax, scene) + _draw_dcu(ax, scene)
+    handles += _draw_trajectories(ax, _as_trajectories(trajectories), labels)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     if title:
         ax.set_title(title)
@@ -199,6 +124,95 @@ def draw_scenario(
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, format="png", bbox_inches="tight")
     return fig
+
+
+def _rect(ax: Any, r: Sequence[float], face: str, edge: str, alpha: float, z: int) -> None:
+    ax.add_patch(Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], facecolor=face, edgecolor=edge,
+                           alpha=alpha, lw=1.0, zorder=z))
+
+
+def _draw_zones(ax: Any, scene: Mapping[str, Any], cfg: EnvConfig) -> list[Any]:
+    """TA, LA and the zones (RZ under NFZ under BZ)."""
+    a = cfg.area
+    ta = _np(scene["takeoff"]).reshape(4) if "takeoff" in scene else np.asarray(a.takeoff)
+    la = _np(scene["landing"]).reshape(4) if "landing" in scene else np.asarray(a.landing)
+    _rect(ax, ta, TA_COLOUR, TA_COLOUR, 0.5, 1)
+    _rect(ax, la, LA_COLOUR, LA_COLOUR, 0.5, 1)
+    handles: list[Any] = [Patch(color=TA_COLOUR, alpha=0.5, label="take-off area"),
+                          Patch(color=LA_COLOUR, alpha=0.5, label="landing area")]
+    for name in ("rz", "nfz", "bz"):
+        face, edge, label = ZONE_STYLE[name]
+        rs = _rects(scene, name)
+        for r in rs:
+            _rect(ax, r, face, edge, 0.35 if name == "rz" else 0.6, 2 if name == "rz" else 3)
+        if len(rs):
+            handles.append(Patch(facecolor=face, edgecolor=edge, alpha=0.6, label=label))
+    return handles
+
+
+def _draw_ges(ax: Any, scene: Mapping[str, Any], cfg: EnvConfig) -> list[Any]:
+    """GEs: marker area grows with the data still to collect; collected ones are hollow."""
+    if "ge_pos" not in scene:
+        return []
+    handles: list[Any] = []
+    pos = np.asarray(scene["ge_pos"], dtype=float).reshape(-1, 2)
+    mask = np.asarray(scene.get("ge_mask", np.ones(len(pos), bool)), dtype=bool).reshape(-1)
+    rem = scene.get("ge_remaining", scene.get("ge_data"))
+    rem = np.zeros(len(pos)) if rem is None else np.asarray(rem, dtype=float).reshape(-1)
+    pos, rem = pos[mask], rem[mask]
+    size = 15.0 + 70.0 * np.clip(rem / cfg.ge.data_max, 0.0, 1.0)
+    full = rem > 0
+    if full.any():
+        ax.scatter(pos[full, 0], pos[full, 1], s=size[full], color=GE_COLOUR, zorder=5)
+        handles.append(Line2D([], [], ls="", marker="o", color=GE_COLOUR, label="GE (size: data left)"))
+    if (~full).any():
+        ax.scatter(pos[~full, 0], pos[~full, 1], s=size[~full], facecolors="none", edgecolors=GE_COLOUR, zorder=5)
+        handles.append(Line2D([], [], ls="", marker="o", mfc="none", color=GE_COLOUR, label="GE collected"))
+    return handles
+
+
+def _draw_ous(ax: Any, scene: Mapping[str, Any]) -> list[Any]:
+    """Other UAVs with their velocity."""
+    if "ou_pos" not in scene:
+        return []
+    pos = np.asarray(scene["ou_pos"], dtype=float).reshape(-1, 2)
+    mask = np.asarray(scene.get("ou_mask", np.ones(len(pos), bool)), dtype=bool).reshape(-1)
+    vel = np.asarray(scene.get("ou_vel", np.zeros_like(pos)), dtype=float).reshape(-1, 2)
+    pos, vel = pos[mask], vel[mask]
+    if not len(pos):
+        return []
+    ax.scatter(pos[:, 0], pos[:, 1], marker="^", s=40, color=OU_COLOUR, zorder=6)
+    ax.quiver(pos[:, 0], pos[:, 1], vel[:, 0] * OU_ARROW_SECONDS, vel[:, 1] * OU_ARROW_SECONDS,
+              angles="xy", scale_units="xy", scale=1.0, color=OU_COLOUR, width=0.004, zorder=6)
+    return [Line2D([], [], ls="", marker="^", color=OU_COLOUR, label=f"other UAV (arrow: {OU_ARROW_SECONDS:g} s)")]
+
+
+def _draw_dcu(ax: Any, scene: Mapping[str, Any]) -> list[Any]:
+    """The DCU: its start (a scenario) or its current position (a state)."""
+    dcu = scene.get("position", scene.get("start"))
+    if dcu is None:
+        return []
+    d = np.asarray(dcu, dtype=float).reshape(2)
+    ax.scatter([d[0]], [d[1]], marker="*", s=140, color="black", zorder=8)
+    return [Line2D([], [], ls="", marker="*", ms=10, color="black", label="DCU" if "position" in scene else "start")]
+
+
+def _draw_trajectories(ax: Any, trajs: list[np.ndarray], labels: Sequence[str] | None) -> list[Any]:
+    handles: list[Any] = []
+    cmap = matplotlib.colormaps["tab10"]
+    for i, t in enumerate(trajs):
+        if len(t) == 0:
+            continue
+        label = labels[i] if labels is not None and i < len(labels) else ("trajectory" if len(trajs) == 1 else f"trajectory {i}")
+        (line,) = ax.plot(t[:, 0], t[:, 1], "-", lw=1.6, color=cmap(i % 10), zorder=7, label=label)
+        colour = line.get_color()
+        ax.plot(t[0, 0], t[0, 1], "o", ms=6, color=colour, zorder=9)
+        ax.plot(t[-1, 0], t[-1, 1], "s", ms=6, mfc="white", mec=colour, mew=1.8, zorder=9)
+        handles.append(line)
+    if trajs:
+        handles += [Line2D([], [], ls="", marker="o", color="grey", label="trajectory start"),
+                    Line2D([], [], ls="", marker="s", mfc="white", mec="grey", label="trajectory end")]
+    return handles
 
 
 def figure_to_rgb(fig: Figure) -> np.ndarray:

@@ -346,121 +346,143 @@ def _draw_counts(cr: Any, n: int, g: torch.Generator) -> Tensor:
     return torch.randint(cr.min, cr.max + 1, (n,), generator=g, device=g.device)
 
 
-def _sample_layouts(cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generator) -> tuple[dict[str, Tensor], Tensor]:
-    """One layout attempt for each row of ``counts``; returns (fields, fail code [n], 0 = ok)."""
-    dev = g.device
-    n = counts["bz"].shape[0]
-    z, s, a = cfg.zones, cfg.safety, cfg.area
-    X, Y = a.x_size, a.y_size
-    fail = torch.zeros(n, dtype=torch.long, device=dev)
-    fail_slot = torch.zeros(n, dtype=torch.long, device=dev)  # which BZ / NFZ slot, for the error
-    tala = _ta_la(cfg, dev)
-    out: dict[str, Tensor] = {}
+class _Layout:
+    """One layout attempt for each row of ``counts`` (:func:`_sample_layouts`), placed kind by
+    kind in a fixed order (the draws from ``g`` come in that order: a seed gives one layout);
+    ``fail`` holds each row's failure code (0 = ok) and ``fail_slot`` the BZ / NFZ slot."""
 
-    def draw_rect(m: int, k: int) -> Tensor:
-        u = _rand(g, m, k, 4)
+    def __init__(self, cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generator):
+        self.cfg, self.counts, self.g = cfg, counts, g
+        self.dev = g.device
+        self.n = counts["bz"].shape[0]
+        self.fail = torch.zeros(self.n, dtype=torch.long, device=self.dev)
+        self.fail_slot = torch.zeros(self.n, dtype=torch.long, device=self.dev)
+        self.tala = _ta_la(cfg, self.dev)
+        self.pads = {"bz": cfg.zones.n_bz, "nfz": cfg.zones.n_nfz, "rz": cfg.zones.n_rz}
+        self.out: dict[str, Tensor] = {}
+
+    def draw_rect(self, m: int, k: int) -> Tensor:
+        z, a = self.cfg.zones, self.cfg.area
+        u = _rand(self.g, m, k, 4)
         w = z.side_min + (z.side_max - z.side_min) * u[..., 0]
         h = z.side_min + (z.side_max - z.side_min) * u[..., 1]
-        x0 = u[..., 2] * (X - w)
-        y0 = u[..., 3] * (Y - h)
-        return torch.stack((x0, y0, (x0 + w).clamp(max=X), (y0 + h).clamp(max=Y)), -1)
+        x0 = u[..., 2] * (a.x_size - w)
+        y0 = u[..., 3] * (a.y_size - h)
+        return torch.stack((x0, y0, (x0 + w).clamp(max=a.x_size), (y0 + h).clamp(max=a.y_size)), -1)
 
-    # BZ and NFZ: one slot at a time, clear of the already placed ones and of TA/LA by d_safe
-    pads = {"bz": z.n_bz, "nfz": z.n_nfz, "rz": z.n_rz}
-    n_obst = z.n_bz.max + z.n_nfz.max
-    obst = torch.zeros(n, n_obst, 4, dtype=_DTYPE, device=dev)
-    obst_m = torch.zeros(n, n_obst, dtype=torch.bool, device=dev)
-    slot = 0
-    for kind in ("bz", "nfz"):
-        rects = torch.zeros(n, pads[kind].padded, 4, dtype=_DTYPE, device=dev)
-        for k in range(pads[kind].max):
-            rows = torch.nonzero((counts[kind] > k) & (fail == 0)).squeeze(-1)
-            placed, placed_m = obst[rows, :slot], obst_m[rows, :slot]
+    def draw_point(self, m: int, k: int) -> Tensor:
+        u = _rand(self.g, m, k, 2)
+        return u * torch.tensor([self.cfg.area.x_size, self.cfg.area.y_size], dtype=_DTYPE, device=self.dev)
 
-            def ok_obst(r: Tensor, c: Tensor, placed: Tensor = placed, placed_m: Tensor = placed_m) -> Tensor:
-                clear = (_rect_gap(c.unsqueeze(-2), tala) >= s.d_safe).all(-1)  # [m, k]
-                if slot:
-                    hit = _rects_overlap(c.unsqueeze(-2), placed[r].unsqueeze(-3)) & placed_m[r].unsqueeze(-2)
-                    clear &= ~hit.any(-1)
-                return clear
+    def place_obstacles(self) -> None:
+        """BZ and NFZ: one slot at a time, clear of the already placed ones and of TA/LA by d_safe."""
+        z, s, dev, n = self.cfg.zones, self.cfg.safety, self.dev, self.n
+        self.obst = torch.zeros(n, z.n_bz.max + z.n_nfz.max, 4, dtype=_DTYPE, device=dev)
+        self.obst_m = torch.zeros(n, z.n_bz.max + z.n_nfz.max, dtype=torch.bool, device=dev)
+        slot = 0
+        for kind in ("bz", "nfz"):
+            rects = torch.zeros(n, self.pads[kind].padded, 4, dtype=_DTYPE, device=dev)
+            for k in range(self.pads[kind].max):
+                rows = torch.nonzero((self.counts[kind] > k) & (self.fail == 0)).squeeze(-1)
+                placed, placed_m = self.obst[rows, :slot], self.obst_m[rows, :slot]
 
-            val, found = _first_valid(rows.numel(), cfg.sampling.rect_tries, draw_rect, ok_obst, 4, dev)
-            rects[rows, k] = val
-            obst[rows, slot] = val
-            obst_m[rows, slot] = found
-            fail[rows[~found]] = _FAIL_CODES[kind]
-            fail_slot[rows[~found]] = k
-            slot += 1
-        out[kind] = rects
+                def ok_obst(r: Tensor, c: Tensor, placed: Tensor = placed, placed_m: Tensor = placed_m,
+                            slot: int = slot) -> Tensor:
+                    clear = (_rect_gap(c.unsqueeze(-2), self.tala) >= s.d_safe).all(-1)  # [m, k]
+                    if slot:
+                        hit = _rects_overlap(c.unsqueeze(-2), placed[r].unsqueeze(-3)) & placed_m[r].unsqueeze(-2)
+                        clear &= ~hit.any(-1)
+                    return clear
 
-    # RZ: only kept off TA and LA, so all slots are independent and placed at once
-    rz = torch.zeros(n, z.n_rz.padded, 4, dtype=_DTYPE, device=dev)
-    rz_m = torch.arange(z.n_rz.padded, device=dev) < counts["rz"].unsqueeze(-1)
-    pairs = torch.nonzero(rz_m & (fail == 0).unsqueeze(-1))
-    val, found = _first_valid(
-        pairs.shape[0], cfg.sampling.rect_tries, draw_rect,
-        lambda r, c: ~_rects_overlap(c.unsqueeze(-2), tala).any(-1), 4, dev,
-    )  # fmt: skip
-    rz[pairs[:, 0], pairs[:, 1]] = val
-    fail[pairs[~found, 0]] = _FAIL_CODES["rz"]
-    out["rz"] = rz
-    masks = {k: torch.arange(pads[k].padded, device=dev) < counts[k].unsqueeze(-1) for k in pads}
+                val, found = _first_valid(rows.numel(), self.cfg.sampling.rect_tries, self.draw_rect, ok_obst, 4, dev)
+                rects[rows, k] = val
+                self.obst[rows, slot] = val
+                self.obst_m[rows, slot] = found
+                self.fail[rows[~found]] = _FAIL_CODES[kind]
+                self.fail_slot[rows[~found]] = k
+                slot += 1
+            self.out[kind] = rects
 
-    def draw_point(m: int, k: int) -> Tensor:
-        u = _rand(g, m, k, 2)
-        return u * torch.tensor([X, Y], dtype=_DTYPE, device=dev)
+    def place_rz(self) -> None:
+        """RZ: only kept off TA and LA, so all slots are independent and placed at once."""
+        z, dev = self.cfg.zones, self.dev
+        rz = torch.zeros(self.n, z.n_rz.padded, 4, dtype=_DTYPE, device=dev)
+        rz_m = torch.arange(z.n_rz.padded, device=dev) < self.counts["rz"].unsqueeze(-1)
+        pairs = torch.nonzero(rz_m & (self.fail == 0).unsqueeze(-1))
+        val, found = _first_valid(
+            pairs.shape[0], self.cfg.sampling.rect_tries, self.draw_rect,
+            lambda r, c: ~_rects_overlap(c.unsqueeze(-2), self.tala).any(-1), 4, dev,
+        )  # fmt: skip
+        rz[pairs[:, 0], pairs[:, 1]] = val
+        self.fail[pairs[~found, 0]] = _FAIL_CODES["rz"]
+        self.out["rz"] = rz
+        self.masks = {k: torch.arange(self.pads[k].padded, device=dev) < self.counts[k].unsqueeze(-1) for k in self.pads}
 
-    # GE: outside every zone by >= d_min, outside TA/LA
-    zones = torch.cat((out["bz"], out["nfz"], rz), 1)
-    zones_m = torch.cat((masks["bz"], masks["nfz"], masks["rz"]), 1)
-    ge_m = torch.arange(cfg.ge.count.padded, device=dev) < counts["ge"].unsqueeze(-1)
-    pairs = torch.nonzero(ge_m & (fail == 0).unsqueeze(-1))
+    def place_ges(self) -> None:
+        """GE: outside every zone by >= d_min, outside TA/LA; data uniform in [data_min, data_max]."""
+        cfg, dev, out, masks = self.cfg, self.dev, self.out, self.masks
+        zones = torch.cat((out["bz"], out["nfz"], out["rz"]), 1)
+        zones_m = torch.cat((masks["bz"], masks["nfz"], masks["rz"]), 1)
+        ge_m = torch.arange(cfg.ge.count.padded, device=dev) < self.counts["ge"].unsqueeze(-1)
+        pairs = torch.nonzero(ge_m & (self.fail == 0).unsqueeze(-1))
 
-    def ok_ge(r: Tensor, c: Tensor) -> Tensor:
-        b = pairs[r, 0]
-        off_tala = ~_point_in_rect(c.unsqueeze(-2), tala).any(-1)
-        return off_tala & _clear_of(c, zones[b], zones_m[b], s.d_min)
+        def ok_ge(r: Tensor, c: Tensor) -> Tensor:
+            b = pairs[r, 0]
+            off_tala = ~_point_in_rect(c.unsqueeze(-2), self.tala).any(-1)
+            return off_tala & _clear_of(c, zones[b], zones_m[b], cfg.safety.d_min)
 
-    val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, draw_point, ok_ge, 2, dev)
-    ge_pos = torch.zeros(n, cfg.ge.count.padded, 2, dtype=_DTYPE, device=dev)
-    ge_pos[pairs[:, 0], pairs[:, 1]] = val
-    fail[pairs[~found, 0]] = _FAIL_CODES["ge"]
-    dv = cfg.ge.data_min + (cfg.ge.data_max - cfg.ge.data_min) * torch.rand(
-        n, cfg.ge.count.padded, generator=g, device=dev, dtype=_DTYPE
-    )
-    out["ge_pos"], out["ge_data"], out["ge_mask"] = ge_pos, torch.where(ge_m, dv, 0.0), ge_m
+        val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, self.draw_point, ok_ge, 2, dev)
+        ge_pos = torch.zeros(self.n, cfg.ge.count.padded, 2, dtype=_DTYPE, device=dev)
+        ge_pos[pairs[:, 0], pairs[:, 1]] = val
+        self.fail[pairs[~found, 0]] = _FAIL_CODES["ge"]
+        dv = cfg.ge.data_min + (cfg.ge.data_max - cfg.ge.data_min) * torch.rand(
+            self.n, cfg.ge.count.padded, generator=self.g, device=dev, dtype=_DTYPE
+        )
+        out["ge_pos"], out["ge_data"], out["ge_mask"] = ge_pos, torch.where(ge_m, dv, 0.0), ge_m
 
-    # OU: outside BZ/NFZ by >= d_min, >= d_safe from the start
-    start = torch.tensor(a.start_xy, dtype=_DTYPE, device=dev)
-    ou_m = torch.arange(cfg.ou.count.padded, device=dev) < counts["ou"].unsqueeze(-1)
-    pairs = torch.nonzero(ou_m & (fail == 0).unsqueeze(-1))
+    def place_ous(self) -> None:
+        """OU: outside BZ/NFZ by >= d_min, >= d_safe from the start; speed and heading uniform."""
+        cfg, dev, s = self.cfg, self.dev, self.cfg.safety
+        start = torch.tensor(cfg.area.start_xy, dtype=_DTYPE, device=dev)
+        ou_m = torch.arange(cfg.ou.count.padded, device=dev) < self.counts["ou"].unsqueeze(-1)
+        pairs = torch.nonzero(ou_m & (self.fail == 0).unsqueeze(-1))
 
-    def ok_ou(r: Tensor, c: Tensor) -> Tensor:
-        b = pairs[r, 0]
-        far = torch.linalg.vector_norm(c - start, dim=-1) >= s.d_safe
-        return far & _clear_of(c, obst[b], obst_m[b], s.d_min)
+        def ok_ou(r: Tensor, c: Tensor) -> Tensor:
+            b = pairs[r, 0]
+            far = torch.linalg.vector_norm(c - start, dim=-1) >= s.d_safe
+            return far & _clear_of(c, self.obst[b], self.obst_m[b], s.d_min)
 
-    val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, draw_point, ok_ou, 2, dev)
-    ou_pos = torch.zeros(n, cfg.ou.count.padded, 2, dtype=_DTYPE, device=dev)
-    ou_pos[pairs[:, 0], pairs[:, 1]] = val
-    fail[pairs[~found, 0]] = _FAIL_CODES["ou"]
-    u = torch.rand(n, cfg.ou.count.padded, 2, generator=g, device=dev, dtype=_DTYPE)
-    speed = cfg.motion.v_max * u[..., 0]  # |v| ~ U[0, v_max]
-    heading = 2 * math.pi * u[..., 1]  # heading ~ U[0, 2π)
-    vel = torch.stack((speed * torch.cos(heading), speed * torch.sin(heading)), -1)
-    out["ou_pos"], out["ou_vel"], out["ou_mask"] = ou_pos, torch.where(ou_m.unsqueeze(-1), vel, 0.0), ou_m
+        val, found = _first_valid(pairs.shape[0], cfg.sampling.point_tries, self.draw_point, ok_ou, 2, dev)
+        ou_pos = torch.zeros(self.n, cfg.ou.count.padded, 2, dtype=_DTYPE, device=dev)
+        ou_pos[pairs[:, 0], pairs[:, 1]] = val
+        self.fail[pairs[~found, 0]] = _FAIL_CODES["ou"]
+        u = torch.rand(self.n, cfg.ou.count.padded, 2, generator=self.g, device=dev, dtype=_DTYPE)
+        speed = cfg.motion.v_max * u[..., 0]  # |v| ~ U[0, v_max]
+        heading = 2 * math.pi * u[..., 1]  # heading ~ U[0, 2π)
+        vel = torch.stack((speed * torch.cos(heading), speed * torch.sin(heading)), -1)
+        self.out["ou_pos"], self.out["ou_vel"], self.out["ou_mask"] = ou_pos, torch.where(ou_m.unsqueeze(-1), vel, 0.0), ou_m
+        for k in self.pads:
+            self.out[f"{k}_mask"] = self.masks[k]
+        self.out["start"] = start.expand(self.n, 2).clone()
 
-    for k in pads:
-        out[f"{k}_mask"] = masks[k]
-    out["start"] = start.expand(n, 2).clone()
+    def check_connected(self) -> None:
+        """Connectivity, for the rows still alive."""
+        rows = torch.nonzero(self.fail == 0).squeeze(-1)
+        if rows.numel():
+            pts, pm = _targets(self.cfg, self.out["ge_pos"][rows], self.out["ge_mask"][rows])
+            ok = _connected(self.cfg, self.obst[rows], self.obst_m[rows], self.out["start"][rows], pts, pm)
+            self.fail[rows[~ok]] = _FAIL_CODES["connectivity"]
 
-    # connectivity, for the rows still alive
-    rows = torch.nonzero(fail == 0).squeeze(-1)
-    if rows.numel():
-        pts, pm = _targets(cfg, ge_pos[rows], ge_m[rows])
-        ok = _connected(cfg, obst[rows], obst_m[rows], out["start"][rows], pts, pm)
-        fail[rows[~ok]] = _FAIL_CODES["connectivity"]
-    return out, fail * _SLOT_STRIDE + fail_slot
+
+def _sample_layouts(cfg: EnvConfig, counts: dict[str, Tensor], g: torch.Generator) -> tuple[dict[str, Tensor], Tensor]:
+    """One layout attempt for each row of ``counts``; returns (fields, fail code [n], 0 = ok)."""
+    layout = _Layout(cfg, counts, g)
+    layout.place_obstacles()
+    layout.place_rz()
+    layout.place_ges()
+    layout.place_ous()
+    layout.check_connected()
+    return layout.out, layout.fail * _SLOT_STRIDE + layout.fail_slot
 
 
 def sample_scenarios(
@@ -543,76 +565,96 @@ def scenario_violations(cfg: EnvConfig, td: TensorDictBase, check_ranges: bool =
     td = td.to("cpu") if td.device is None or td.device.type != "cpu" else td
     f = {k: td[k].to(_DTYPE) if td[k].is_floating_point() else td[k] for k in SCENARIO_KEYS}
     B = td.batch_size[0]
-    s, a, z = cfg.safety, cfg.area, cfg.zones
-    tala = _ta_la(cfg, torch.device("cpu"))
-    area = _area_rect(cfg, torch.device("cpu"))
     rules: dict[str, Tensor] = {}
-
-    def add(name: str, bad: Tensor) -> None:
-        rules[name] = bad.reshape(B)
-
-    finite = torch.ones(B, dtype=torch.bool)
-    for k, v in f.items():
-        if v.is_floating_point():
-            finite &= torch.isfinite(v).reshape(B, -1).all(-1)
-    add("non-finite numbers", ~finite)
-    for k in ("nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"):
-        m = f[k]
-        add(f"{k} is not present-entries-first", (m[:, 1:] & ~m[:, :-1]).any(-1))
-    for k in _ZONES:
-        r, m = f[k], f[f"{k}_mask"]
-        bad = (r[..., 2] <= r[..., 0]) | (r[..., 3] <= r[..., 1])
-        bad |= (r[..., 0] < 0) | (r[..., 1] < 0) | (r[..., 2] > a.x_size) | (r[..., 3] > a.y_size)
-        add(f"{k} rectangle malformed or outside the area", (bad & m).any(-1))
-    obst = torch.cat((f["bz"], f["nfz"]), 1)
-    om = torch.cat((f["bz_mask"], f["nfz_mask"]), 1)
-    pair = _rects_overlap(obst.unsqueeze(2), obst.unsqueeze(1)) & om.unsqueeze(2) & om.unsqueeze(1)
-    pair &= ~torch.eye(obst.shape[1], dtype=torch.bool).unsqueeze(0)
-    add("BZ/NFZ rectangles overlap", pair.any(-1).any(-1))
-    near = (_rect_gap(obst.unsqueeze(-2), tala) < s.d_safe).any(-1) & om
-    add("BZ/NFZ closer than safety.d_safe to TA/LA", near.any(-1))
-    rz_hit = _rects_overlap(f["rz"].unsqueeze(-2), tala).any(-1) & f["rz_mask"]
-    add("RZ overlaps TA/LA", rz_hit.any(-1))
-
-    gp, gm = f["ge_pos"], f["ge_mask"]
-    zones = torch.cat((f["bz"], f["nfz"], f["rz"]), 1)
-    zm = torch.cat((f["bz_mask"], f["nfz_mask"], f["rz_mask"]), 1)
-    add("GE outside the area", (~_point_in_rect(gp, area) & gm).any(-1))
-    add("GE inside a zone or closer than safety.d_min to one", (~_clear_of(gp, zones, zm, s.d_min) & gm).any(-1))
-    add("GE inside TA/LA", (_point_in_rect(gp.unsqueeze(-2), tala).any(-1) & gm).any(-1))
-    add("GE data negative", ((f["ge_data"] < 0) & gm).any(-1))
-
-    op, omk = f["ou_pos"], f["ou_mask"]
-    add("OU outside the area", (~_point_in_rect(op, area) & omk).any(-1))
-    add("OU inside a BZ/NFZ or closer than safety.d_min to one", (~_clear_of(op, obst, om, s.d_min) & omk).any(-1))
-    far = torch.linalg.vector_norm(op - f["start"].unsqueeze(1), dim=-1) >= s.d_safe
-    add("OU closer than safety.d_safe to the start", (~far & omk).any(-1))
-    v_tol = cfg.motion.v_max * 1e-5  # float32 rounding of speed * (cos, sin)
-    fast = torch.linalg.vector_norm(f["ou_vel"], dim=-1) > cfg.motion.v_max + v_tol
-    add("OU faster than motion.v_max", (fast & omk).any(-1))
-    add("start outside the area", ~_point_in_rect(f["start"], area))
-
-    if check_ranges:
-        tol = 1e-4 * max(a.x_size, a.y_size)  # float32 rounding of stored corners
-        for k, cr in (("nfz", z.n_nfz), ("rz", z.n_rz), ("bz", z.n_bz), ("ge", cfg.ge.count), ("ou", cfg.ou.count)):
-            c = f[f"{k}_mask"].sum(-1)
-            add(f"{k} count outside [{cr.min}, {cr.max}]", (c < cr.min) | (c > cr.max))
-        for k in _ZONES:
-            r, m = f[k], f[f"{k}_mask"]
-            side = torch.stack((r[..., 2] - r[..., 0], r[..., 3] - r[..., 1]), -1)
-            bad = ((side < z.side_min - tol) | (side > z.side_max + tol)).any(-1) & m
-            add(f"{k} side outside [zones.side_min, zones.side_max]", bad.any(-1))
-        dv = f["ge_data"]
-        add("GE data outside [ge.data_min, ge.data_max]", (((dv < cfg.ge.data_min) | (dv > cfg.ge.data_max)) & gm).any(-1))
-        sl = torch.tensor(a.start_xy, dtype=_DTYPE)
-        add("start differs from area.start_xy", (f["start"] != sl).any(-1))
-
-    add("SL, LA and the GEs are not connected in free space", ~check_connectivity(cfg, td))
+    for part in (_layout_violations, _ge_violations, _ou_violations, *((_range_violations,) if check_ranges else ())):
+        rules.update({name: bad.reshape(B) for name, bad in part(cfg, f).items()})
+    rules["SL, LA and the GEs are not connected in free space"] = ~check_connectivity(cfg, td)
     bad_rows = torch.stack(list(rules.values()), -1)  # [B, n_rules]
     names = list(rules)
     out: list[list[str]] = [[] for _ in range(B)]
     for b, r in torch.nonzero(bad_rows).tolist():
         out[b].append(names[r])
+    return out
+
+
+def _layout_violations(cfg: EnvConfig, f: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Numbers, masks and the zones' rectangles (SPEC §1)."""
+    s, a = cfg.safety, cfg.area
+    B = f["start"].shape[0]
+    tala = _ta_la(cfg, torch.device("cpu"))
+    out: dict[str, Tensor] = {}
+    finite = torch.ones(B, dtype=torch.bool)
+    for v in f.values():
+        if v.is_floating_point():
+            finite &= torch.isfinite(v).reshape(B, -1).all(-1)
+    out["non-finite numbers"] = ~finite
+    for k in ("nfz_mask", "rz_mask", "bz_mask", "ge_mask", "ou_mask"):
+        m = f[k]
+        out[f"{k} is not present-entries-first"] = (m[:, 1:] & ~m[:, :-1]).any(-1)
+    for k in _ZONES:
+        r, m = f[k], f[f"{k}_mask"]
+        bad = (r[..., 2] <= r[..., 0]) | (r[..., 3] <= r[..., 1])
+        bad |= (r[..., 0] < 0) | (r[..., 1] < 0) | (r[..., 2] > a.x_size) | (r[..., 3] > a.y_size)
+        out[f"{k} rectangle malformed or outside the area"] = (bad & m).any(-1)
+    obst = torch.cat((f["bz"], f["nfz"]), 1)
+    om = torch.cat((f["bz_mask"], f["nfz_mask"]), 1)
+    pair = _rects_overlap(obst.unsqueeze(2), obst.unsqueeze(1)) & om.unsqueeze(2) & om.unsqueeze(1)
+    pair &= ~torch.eye(obst.shape[1], dtype=torch.bool).unsqueeze(0)
+    out["BZ/NFZ rectangles overlap"] = pair.any(-1).any(-1)
+    near = (_rect_gap(obst.unsqueeze(-2), tala) < s.d_safe).any(-1) & om
+    out["BZ/NFZ closer than safety.d_safe to TA/LA"] = near.any(-1)
+    out["RZ overlaps TA/LA"] = (_rects_overlap(f["rz"].unsqueeze(-2), tala).any(-1) & f["rz_mask"]).any(-1)
+    out["start outside the area"] = ~_point_in_rect(f["start"], _area_rect(cfg, torch.device("cpu")))
+    return out
+
+
+def _ge_violations(cfg: EnvConfig, f: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Where the ground equipment lies and what it holds (SPEC §1)."""
+    s = cfg.safety
+    gp, gm = f["ge_pos"], f["ge_mask"]
+    zones = torch.cat((f["bz"], f["nfz"], f["rz"]), 1)
+    zm = torch.cat((f["bz_mask"], f["nfz_mask"], f["rz_mask"]), 1)
+    return {
+        "GE outside the area": (~_point_in_rect(gp, _area_rect(cfg, torch.device("cpu"))) & gm).any(-1),
+        "GE inside a zone or closer than safety.d_min to one": (~_clear_of(gp, zones, zm, s.d_min) & gm).any(-1),
+        "GE inside TA/LA": (_point_in_rect(gp.unsqueeze(-2), _ta_la(cfg, torch.device("cpu"))).any(-1) & gm).any(-1),
+        "GE data negative": ((f["ge_data"] < 0) & gm).any(-1),
+    }
+
+
+def _ou_violations(cfg: EnvConfig, f: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Where the other UAVs start and how fast they fly (SPEC §1, §2)."""
+    s = cfg.safety
+    op, omk = f["ou_pos"], f["ou_mask"]
+    obst = torch.cat((f["bz"], f["nfz"]), 1)
+    om = torch.cat((f["bz_mask"], f["nfz_mask"]), 1)
+    far = torch.linalg.vector_norm(op - f["start"].unsqueeze(1), dim=-1) >= s.d_safe
+    v_tol = cfg.motion.v_max * 1e-5  # float32 rounding of speed * (cos, sin)
+    fast = torch.linalg.vector_norm(f["ou_vel"], dim=-1) > cfg.motion.v_max + v_tol
+    return {
+        "OU outside the area": (~_point_in_rect(op, _area_rect(cfg, torch.device("cpu"))) & omk).any(-1),
+        "OU inside a BZ/NFZ or closer than safety.d_min to one": (~_clear_of(op, obst, om, s.d_min) & omk).any(-1),
+        "OU closer than safety.d_safe to the start": (~far & omk).any(-1),
+        "OU faster than motion.v_max": (fast & omk).any(-1),
+    }
+
+
+def _range_violations(cfg: EnvConfig, f: dict[str, Tensor]) -> dict[str, Tensor]:
+    """What sampling guarantees beyond validity (counts, sides, data, the start)."""
+    a, z = cfg.area, cfg.zones
+    out: dict[str, Tensor] = {}
+    tol = 1e-4 * max(a.x_size, a.y_size)  # float32 rounding of stored corners
+    for k, cr in (("nfz", z.n_nfz), ("rz", z.n_rz), ("bz", z.n_bz), ("ge", cfg.ge.count), ("ou", cfg.ou.count)):
+        c = f[f"{k}_mask"].sum(-1)
+        out[f"{k} count outside [{cr.min}, {cr.max}]"] = (c < cr.min) | (c > cr.max)
+    for k in _ZONES:
+        r, m = f[k], f[f"{k}_mask"]
+        side = torch.stack((r[..., 2] - r[..., 0], r[..., 3] - r[..., 1]), -1)
+        bad = ((side < z.side_min - tol) | (side > z.side_max + tol)).any(-1) & m
+        out[f"{k} side outside [zones.side_min, zones.side_max]"] = bad.any(-1)
+    dv, gm = f["ge_data"], f["ge_mask"]
+    out["GE data outside [ge.data_min, ge.data_max]"] = (((dv < cfg.ge.data_min) | (dv > cfg.ge.data_max)) & gm).any(-1)
+    out["start differs from area.start_xy"] = (f["start"] != torch.tensor(a.start_xy, dtype=_DTYPE)).any(-1)
     return out
 
 
@@ -792,7 +834,10 @@ def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) 
     dump_json(path, [sc.to_dict() for sc in scenarios], indent=None, allow_nan=False)
 
 
-def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
+def load_scenarios(path: str | os.PathLike[str], cfg: EnvConfig | None = None) -> list[Scenario]:
+    """The scenarios of a file; with ``cfg``, each checked against the world's rules (SPEC §1:
+    zones inside the area, BZ/NFZ apart, GEs clear of zones, data not negative, ...): a file
+    that breaks one is an error naming the file, the scenario and every rule it breaks."""
     data = _read_json(path)
     if not isinstance(data, list):
         raise ValueError(f"{path}: expected a JSON list of scenarios, got {type(data).__name__}")
@@ -802,4 +847,9 @@ def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
             out.append(Scenario.from_dict(d))
         except ValueError as e:
             raise ValueError(f"{path}: scenario {i}: {e}") from None
+    if cfg is not None and out:
+        bad = [(i, v) for i, v in enumerate(scenario_violations(cfg, stack_scenarios(out, cfg))) if v]
+        if bad:
+            raise ValueError(f"{path}: " + "; ".join(f"scenario {i} breaks: {', '.join(v)}" for i, v in bad[:5])
+                             + (f"; and {len(bad) - 5} more scenarios" if len(bad) > 5 else ""))
     return out

@@ -9,6 +9,10 @@ Three steps, each a sub-command:
   its advisor, and the heuristic and uniform-random baselines of the same evaluation set) and
   ``curves.csv`` (every evaluation during training, and the logged trigger rate, advised fraction
   and actor-advisor agreement over frames). No run archive, no checkpoint.
+- ``restore results/advice RUNS_DIR``: the study outlives the machine it runs on. ``records``
+  also keeps each finished run's ``config.json`` and ``final_metrics.json`` (a few kB) under
+  ``results/advice/runs/``; ``restore`` puts them back into a fresh ``RUNS_DIR``, where the
+  study's sweeps (``experiment.reuse``) then count those runs as done and run only the rest.
 - ``choose RUNS_DIR``: the cloning weight for the verdict seeds, chosen on the tuning cell's own
   seeds (``aid_tune``): the weight whose actor alone scores the highest mean of DCR and SLR at
   the end (ties: the smaller weight). Prints the weight; writes nothing.
@@ -70,8 +74,18 @@ def world_of(cfg: dict[str, Any]) -> str:
 
 
 def transfer_of(cfg: dict[str, Any]) -> str:
+    """The study's transfer (``override``, ``teach``, ``tune``, ``aid``) from its point
+    ``<world>_<transfer>``; any other sweep's point as it is."""
     point = str((cfg.get("experiment") or {}).get("point") or "")
-    return point.split("_", 1)[1] if "_" in point else point
+    world, _, rest = point.partition("_")
+    return rest if world in ("aid", "spec") and rest else point
+
+
+def _read_rows(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as fh:
+        return list(csv.DictReader(fh))
 
 
 def _episodes(path: Path) -> list[dict[str, str]]:
@@ -107,7 +121,7 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
         return None
     ex = cfg.get("experiment") or {}
     key = {"world": world_of(cfg), "transfer": transfer_of(cfg), "method": str(ex.get("method") or cfg["name"]),
-           "seed": int(cfg["seed"])}
+           "seed": int(cfg["seed"]), "sweep": str(ex.get("sweep") or "")}
     git = meta.get("git") or {}
     machine = meta.get("machine") or {}
     run = {**key, "frames": frames, "wall_s": final.get("wall_s"), "updates": final.get("updates"),
@@ -137,13 +151,17 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     return run, episodes, curve_rows
 
 
-def collect(root: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]], list[str]]:
-    """Every finished run under ``root`` (``<point>/<method>/seed<k>``), and the unfinished ones' paths."""
+def collect(root: Path, restored: bool = False
+            ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+    """Every finished run under ``root`` (``<point>/<method>/seed<k>``), and the unfinished ones'
+    paths; with ``restored``, the runs put back by :func:`restore` too."""
     runs, episodes, curves, unfinished = [], [], [], []
     for cfg_file in sorted(root.rglob("config.json")):
         d = cfg_file.parent
         if any(p.startswith(".") for p in d.relative_to(root).parts) or not (d / "meta.json").is_file():
             continue
+        if not restored and "restored_from" in _read_json(d / "meta.json"):
+            continue  # its records are already in the CSV files it was restored from
         rec = run_record(d)
         if rec is None:
             unfinished.append(str(d.relative_to(root)))
@@ -156,16 +174,101 @@ def collect(root: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], lis
     return runs, episodes, curves, unfinished
 
 
+KEY_COLUMNS = ["world", "transfer", "method", "seed", "sweep"]
+KEPT_FILES = ("config.json", "final_metrics.json")  # what restore needs to count a run as done
+
+
+def _key(row: dict[str, Any]) -> tuple[str, str, str, int]:
+    return (str(row["world"]), str(row["transfer"]), str(row["method"]), int(row["seed"]))
+
+
+def _merged(old: list[dict[str, Any]], new: list[dict[str, Any]], fresh: set) -> list[dict[str, Any]]:
+    """The rows already recorded of runs not collected again, then the new rows."""
+    return [r for r in old if _key(r) not in fresh] + new
+
+
 def write_records(root: Path, out: Path) -> dict[str, int]:
-    runs, episodes, curves, unfinished = collect(root)
-    run_fields = list(dict.fromkeys(k for r in runs for k in r)) or ["world"]
+    """Adds the finished runs under ``root`` to the records in ``out`` (a run recorded before and
+    collected again is replaced; the records of runs not under ``root`` are kept)."""
+    new_runs, episodes, curves, unfinished = collect(root)
+    fresh = {_key(r) for r in new_runs}
+    runs = _merged(_read_rows(out / "runs.csv"), new_runs, fresh)
+    episodes = _merged(_read_rows(out / "episodes.csv"), episodes, fresh)
+    curves = _merged(_read_rows(out / "curves.csv"), curves, fresh)
+    for run in new_runs:
+        for name in KEPT_FILES:
+            data = (root / run["path"] / name).read_bytes()
+            target = out / "runs" / run["path"] / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(target, lambda fh, data=data: fh.write(data))
+    run_fields = list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS
     _write_csv(out / "runs.csv", runs, run_fields)
-    _write_csv(out / "episodes.csv", episodes, ["world", "transfer", "method", "seed", "evaluation", "scenario",
-                                                 *EPISODE_COLUMNS])
-    _write_csv(out / "curves.csv", curves, ["world", "transfer", "method", "seed", "frames",
-                                             *[c for _, c in CURVE_SCALARS]])
+    _write_csv(out / "episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
+    _write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
     _write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
     return {"runs": len(runs), "episodes": len(episodes), "curve_rows": len(curves), "unfinished": len(unfinished)}
+
+
+# the quick profile's runs that the paper's claims are judged on: (sweep folder, method folders)
+CLAIM_RUNS = (("train", ("sac_llm", "sac_heuristic", "sac", "ppo", "sac_llm_fp0.3", "sac_llm_fp0.4", "sac_llm_fp0.5",
+                         "sac_llm_fp1.0")),
+              ("llm_setting", ("sac_llm",)))
+
+
+def write_claim_records(quick_root: Path, out: Path) -> dict[str, int]:
+    """The final evaluations' episodes of the quick profile's runs behind the paper's claims
+    (SAC+LLM and what it is compared with, the d_th and prompt sweeps) -> ``claims_episodes.csv``
+    and ``claims_runs.csv``, so the verdicts' intervals come from per-episode records too."""
+    runs, episodes = [], []
+    for sweep, methods in CLAIM_RUNS:
+        for d in sorted((quick_root / sweep).rglob("seed*")):
+            if d.parent.name not in methods or not d.is_dir():
+                continue
+            rec = run_record(d)
+            if rec is None:
+                continue
+            run, eps, _ = rec
+            run["path"] = str(d.relative_to(quick_root))
+            runs.append(run)
+            episodes.extend(e for e in eps if e["evaluation"] in ("alone", "random", "heuristic"))
+    _write_csv(out / "claims_runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
+    _write_csv(out / "claims_episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
+    return {"runs": len(runs), "episodes": len(episodes)}
+
+
+def restore(records: Path, root: Path) -> int:
+    """Copy each kept run's files back under ``root`` where that run's folder lacks them, with
+    its evaluations' episodes from ``episodes.csv`` (so choosing the cloning weight reads them as
+    from the run itself); returns how many runs were restored. A finished run's folder is left
+    alone; one with a run in flight is an error."""
+    by_run: dict[tuple[str, str, str, int], list[dict[str, str]]] = defaultdict(list)
+    for e in _read_rows(records / "episodes.csv"):
+        by_run[_key(e)].append(e)
+    n = 0
+    for cfg_file in sorted((records / "runs").rglob("config.json")):
+        rel = cfg_file.parent.relative_to(records / "runs")
+        target = root / rel
+        if (target / "final_metrics.json").is_file():
+            continue
+        if target.is_dir() and any(target.iterdir()):
+            raise SystemExit(f"{target} holds a run that is not finished; remove it to restore the finished one")
+        target.mkdir(parents=True, exist_ok=True)
+        for name in KEPT_FILES:
+            data = (cfg_file.parent / name).read_bytes()
+            atomic_write(target / name, lambda fh, data=data: fh.write(data))
+        cfg, final = _read_json(target / "config.json"), _read_json(target / "final_metrics.json")
+        ex = cfg.get("experiment") or {}
+        key = (world_of(cfg), transfer_of(cfg), str(ex.get("method") or cfg["name"]), int(cfg["seed"]))
+        folders = {"alone": train_eval_dir(target, int(final["frames"])), "with_advisor": target / "eval" / "with_advisor",
+                   "heuristic": target / "eval" / "baseline_heuristic", "random": target / "eval" / "baseline_random"}
+        for evaluation, folder in folders.items():
+            rows = [{"row": e["scenario"], **{c: e[c] for c in EPISODE_COLUMNS}} for e in by_run.get(key, [])
+                    if e["evaluation"] == evaluation]
+            if rows:
+                _write_csv(folder / "episodes.csv", rows, ["row", *EPISODE_COLUMNS])
+        (target / "meta.json").write_text(json.dumps({"restored_from": str(records / "runs" / rel)}))
+        n += 1
+    return n
 
 
 def episode_dcr_slr(rows: list[dict[str, Any]]) -> tuple[float, float]:
@@ -178,7 +281,7 @@ def episode_dcr_slr(rows: list[dict[str, Any]]) -> tuple[float, float]:
 
 def choose(root: Path, point: str = "aid_tune") -> float:
     """The tuning cell's weight with the best mean of DCR and SLR of the actor alone (module doc)."""
-    runs, episodes, _, unfinished = collect(root / point) if (root / point).is_dir() else ([], [], [], [])
+    runs, episodes, _, unfinished = collect(root / point, restored=True) if (root / point).is_dir() else ([], [], [], [])
     if not runs:
         raise SystemExit(f"no finished tuning run under {root / point}; run the tuning cell first")
     pending = [p for p in unfinished]
@@ -203,6 +306,12 @@ def main(argv: list[str] | None = None) -> None:
     r = sub.add_parser("records", help="the study's runs -> CSV records")
     r.add_argument("runs", type=Path)
     r.add_argument("--out", type=Path, default=Path("results/advice"))
+    q = sub.add_parser("claims", help="the quick profile's runs behind the paper's claims -> CSV records")
+    q.add_argument("runs", type=Path, help="the quick profile's runs folder (e.g. runs/quick)")
+    q.add_argument("--out", type=Path, default=Path("results/advice"))
+    s = sub.add_parser("restore", help="put the finished runs' kept files back into a runs folder")
+    s.add_argument("records", type=Path)
+    s.add_argument("runs", type=Path)
     c = sub.add_parser("choose", help="print the tuned cloning weight")
     c.add_argument("runs", type=Path)
     c.add_argument("--point", default="aid_tune")
@@ -211,6 +320,10 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.cmd == "records":
         print(json.dumps(write_records(args.runs, args.out)))
+    elif args.cmd == "claims":
+        print(json.dumps(write_claim_records(args.runs, args.out)))
+    elif args.cmd == "restore":
+        print(f"restored {restore(args.records, args.runs)} finished runs into {args.runs}")
     elif args.cmd == "choose":
         print(choose(args.runs, args.point))
     else:

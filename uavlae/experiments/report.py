@@ -625,6 +625,31 @@ def sweep_commands(root: Path) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+@dataclass
+class _Writer:
+    """What :func:`build` writes into ``out``: each table as CSV and Markdown, the Markdown body of
+    ``report.md`` in order, and what it returns (tables, figures)."""
+
+    out: Path
+    style: Style
+    note: str
+    result: dict[str, Any]
+    md: list[str] = field(default_factory=list)
+
+    def table(self, name: str, rows: list[dict[str, Any]], first: list[str], heading: str, text: str = "") -> None:
+        _write_csv(self.out / f"{name}.csv", rows)
+        self.result["tables"][name] = rows
+        lines = [f"## {heading}", ""] + ([text, ""] if text else []) + _md_table(rows, first) + [""]
+        _write_text(self.out / f"{name}.md", "\n".join(lines))
+        self.md.extend(lines)
+
+    def figures(self, files: list[str], images: list[str] | None = None) -> None:
+        """``files`` written; ``images``: the Markdown image lines for them (default: one per PNG)."""
+        self.result["figures"] += files
+        self.md += images if images is not None else [f"![{f}]({f})" for f in files if f.endswith(".png")]
+        self.md.append("")
+
+
 def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
     """Collect, aggregate and write everything; returns what it wrote (the tests read it).
     ``command``: the command line that wrote it, as the report should show it (default: this
@@ -632,14 +657,12 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
     wherever it is regenerated."""
     runs, skipped = collect(root)
     out.mkdir(parents=True, exist_ok=True)
-    style = Style([r.method for r in runs] or ["none"])
     worlds = sorted({r.world for r in runs})
     note = "; ".join(worlds) if worlds else ""
     if any(w != "SPEC world" for w in worlds):
         note = "NOTE " + note + " (beyond the paper, SPEC §10)"
-    profiles = sorted({r.profile for r in runs if r.profile})
-    result: dict[str, Any] = {"runs": len(runs), "skipped": skipped, "tables": {}, "figures": []}
-
+    w = _Writer(out, Style([r.method for r in runs] or ["none"]), note,
+                {"runs": len(runs), "skipped": skipped, "tables": {}, "figures": []})
     _write_csv(out / "runs.csv", [
         {"kind": r.kind, "sweep": r.sweep, "point": r.point, "method": r.method, "seed": r.seed,
          **{m: r.metrics.get(m) for m in METRICS}, "frames": r.frames, "episodes": r.episodes, "updates": r.updates,
@@ -649,35 +672,47 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
     ])
     _write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped], ["path", "reason"])
     groups = group(runs)
-    md: list[str] = []
+    _train_section(w, runs, groups)
+    _scenario_sections(w, runs, groups)
+    _one_factor_sections(w, runs)
+    _llm_sections(w, root, runs)
+    for r in (r for r in runs if r.sweep == "long"):  # the long run(s): one method, one seed
+        w.table(f"long_{r.method}", [aggregate_rows([r], {"method": r.method})], ["method"],
+                f"Long run: {r.method}, {r.world}, {r.frames} frames, {r.episodes} episodes")
+        figs = _fig_long(r, w.style, out, note)
+        w.figures(figs, [f"![long]({f})" for f in figs if f.endswith(".png")])
+    shown = display_path(root)
+    command = command or shlex.join(["python", "-m", "uavlae.experiments.report", shown])
+    text = _header(runs, skipped, worlds, shown, command) + w.md + _footer(root, runs, skipped)
+    _write_text(out / "report.md", "\n".join(text))
+    result = w.result
+    dump_json(out / "report.json", {k: v for k, v in result.items() if k != "tables"} | {"tables": result["tables"]})
+    return result
 
-    def table(name: str, rows: list[dict[str, Any]], first: list[str], heading: str, text: str = "") -> None:
-        _write_csv(out / f"{name}.csv", rows)
-        result["tables"][name] = rows
-        lines = [f"## {heading}", ""] + ([text, ""] if text else []) + _md_table(rows, first) + [""]
-        _write_text(out / f"{name}.md", "\n".join(lines))
-        md.extend(lines)
 
-    # Fig. 3 and the final evaluation on the default distribution
+def _train_section(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str], list[Run]]) -> None:
+    """Fig. 3 and the final evaluation on the default distribution, and the learned test."""
     train = [r for r in runs if r.sweep == "train" and r.kind == "train"]
     train_rows = [aggregate_rows(groups[k], {"method": k[2]}) for k in sorted(
         {k for k in groups if k[0] == "train"}, key=lambda k: method_key(k[2]))]
-    if train_rows:
-        table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
-              "Mean [95% CI] over seeds of the deterministic actor on the shared evaluation set.")
-        learned = learned_rows(train_rows, {k[2]: groups[k] for k in groups if k[0] == "train"})
-        _write_csv(out / "learned.csv", learned)
-        result["tables"]["learned"] = learned
-        md += ["## Learned? (DCR and SLR above the uniform-random policy's, non-overlapping 95% intervals)", "",
-               "| method | DCR | random DCR | SLR | random SLR | learned |", "|---|---|---|---|---|---|"]
-        md += [f"| {r['method']} | {r['DCR']} | {r['random_DCR']} | {r['SLR']} | {r['random_SLR']} | {r['learned']} |" for r in learned]
-        md.append("")
-        figs = fig_training([r for r in train if r.config.get("controller", "learner") == "learner"], style, out, note)
-        result["figures"] += figs
-        md += [f"![{f}]({f})" for f in figs if f.endswith(".png")] + [""]
+    if not train_rows:
+        return
+    w.table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
+            "Mean [95% CI] over seeds of the deterministic actor on the shared evaluation set.")
+    learned = learned_rows(train_rows, {k[2]: groups[k] for k in groups if k[0] == "train"})
+    _write_csv(w.out / "learned.csv", learned)
+    w.result["tables"]["learned"] = learned
+    w.md += ["## Learned? (DCR and SLR above the uniform-random policy's, non-overlapping 95% intervals)", "",
+             "| method | DCR | random DCR | SLR | random SLR | learned |", "|---|---|---|---|---|---|"]
+    w.md += [f"| {r['method']} | {r['DCR']} | {r['random_DCR']} | {r['SLR']} | {r['random_SLR']} | {r['learned']} |"
+             for r in learned]
+    w.md.append("")
+    w.figures(fig_training([r for r in train if r.config.get("controller", "learner") == "learner"], w.style, w.out,
+                           w.note))
 
-    # Figs. 5-9 and Fig. 10
-    summary_seeds: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+
+def _scenario_sections(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str], list[Run]]) -> None:
+    """Figs. 5-9 (metrics against each count) and Fig. 10 (each seed's mean over all of them)."""
     per_seed: dict[tuple[str, int, str], list[float]] = defaultdict(list)
     for sweep, (count, fig) in SCENARIO_SWEEPS.items():
         keys = [k for k in groups if k[0] == sweep]
@@ -689,66 +724,63 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
             for r in groups[k]:
                 for m in METRICS:
                     per_seed[(r.method, r.seed, m)].append(r.metrics[m])
-        table(f"{fig}_{sweep}", rows, [count, "method"], f"{fig.replace('fig', 'Fig. ')}: metrics against {count}")
-        result["figures"] += fig_lines(rows, count, count, f"{fig.replace('fig', 'Fig. ')}: metrics against {count} "
-                                       "(mean, 95% CI over seeds)", style, out, f"{fig}_{sweep}", note)
-        md += [f"![{fig}]({fig}_{sweep}.png)", ""]
-    if per_seed:
-        rows = []
-        for method in sorted({k[0] for k in per_seed}, key=method_key):
-            row: dict[str, Any] = {"method": method}
-            seeds = sorted({k[1] for k in per_seed if k[0] == method})
-            for m in METRICS:
-                vals = [sum(per_seed[(method, s, m)]) / len(per_seed[(method, s, m)]) for s in seeds]
-                row[m], row[f"{m}_lo"], row[f"{m}_hi"], _ = mean_ci(vals)
-            row.update({"n_seeds": len(seeds), "seeds": " ".join(map(str, seeds)), "frames": "", "episodes": "",
-                        "commits": " ".join(sorted({r.commit + ("+dirty" if r.dirty else "") for r in runs
-                                                    if r.method == method and r.kind == "eval"}))})
-            rows.append(row)
-        table("fig10_summary", rows, ["method"], "Fig. 10: mean over all scenario settings",
-              "Each seed's mean over every setting of Figs. 5-9, then mean [95% CI] over seeds.")
-        result["figures"] += fig_radar(rows, style, out, note)
-        md += ["![fig10](fig10_summary_radar.png)", ""]
+        title = f"{fig.replace('fig', 'Fig. ')}: metrics against {count}"
+        w.table(f"{fig}_{sweep}", rows, [count, "method"], title)
+        w.figures(fig_lines(rows, count, count, f"{title} (mean, 95% CI over seeds)", w.style, w.out, f"{fig}_{sweep}",
+                            w.note), [f"![{fig}]({fig}_{sweep}.png)"])
+    if not per_seed:
+        return
+    rows = []
+    for method in sorted({k[0] for k in per_seed}, key=method_key):
+        row: dict[str, Any] = {"method": method}
+        seeds = sorted({k[1] for k in per_seed if k[0] == method})
+        for m in METRICS:
+            vals = [sum(per_seed[(method, s, m)]) / len(per_seed[(method, s, m)]) for s in seeds]
+            row[m], row[f"{m}_lo"], row[f"{m}_hi"], _ = mean_ci(vals)
+        row.update({"n_seeds": len(seeds), "seeds": " ".join(map(str, seeds)), "frames": "", "episodes": "",
+                    "commits": " ".join(sorted({r.commit + ("+dirty" if r.dirty else "") for r in runs
+                                                if r.method == method and r.kind == "eval"}))})
+        rows.append(row)
+    w.table("fig10_summary", rows, ["method"], "Fig. 10: mean over all scenario settings",
+            "Each seed's mean over every setting of Figs. 5-9, then mean [95% CI] over seeds.")
+    w.figures(fig_radar(rows, w.style, w.out, w.note), ["![fig10](fig10_summary_radar.png)"])
 
-    # Figs. 11-12 and 13-14: one factor at a time around the defaults
+
+def _one_factor_sections(w: _Writer, runs: list[Run]) -> None:
+    """Figs. 11-12 and 13-14: one factor at a time around the defaults."""
     for sweep, axes_ in (("sensitivity", SENSITIVITY_AXES), ("llm_setting", LLM_AXES)):
         for name, label, fig, rows in one_factor_rows([r for r in runs if r.sweep == sweep], axes_):
             categorical = any(isinstance(r[label], str) for r in rows)
             stem = f"{fig}_{sweep}_{name}"
             title = f"{fig.replace('fig', 'Fig. ')}: sensitivity to {label}"
-            table(stem, rows, [label, "method"], title)
-            result["figures"] += fig_lines(rows, label, label, title, style, out, stem, note, categorical=categorical,
-                                           logx=name.endswith("lr") or name == "batch_size")
-            md += [f"![{name}]({stem}.png)", ""]
+            w.table(stem, rows, [label, "method"], title)
+            w.figures(fig_lines(rows, label, label, title, w.style, w.out, stem, w.note, categorical=categorical,
+                                logx=name.endswith("lr") or name == "batch_size"), [f"![{name}]({stem}.png)"])
+
+
+def _llm_sections(w: _Writer, root: Path, runs: list[Run]) -> None:
+    """The LLM runs beside plain SAC at equal frames, and the LLM alone on the scenarios it scored."""
     equal = equal_frames_rows(runs)
     if equal:
-        table("llm_equal_frames", equal, ["method", "setting"], "The LLM runs beside plain SAC at equal frames",
-              "Each LLM run's final evaluation, and the evaluation of the train sweep's plain SAC runs at the same "
-              "frame count (their learning curve's point): what the LLM's transitions changed at that budget.")
-
+        w.table("llm_equal_frames", equal, ["method", "setting"], "The LLM runs beside plain SAC at equal frames",
+                "Each LLM run's final evaluation, and the evaluation of the train sweep's plain SAC runs at the same "
+                "frame count (their learning curve's point): what the LLM's transitions changed at that budget.")
     alone = llm_alone_rows(root, runs)
     if alone:
-        table("llm_alone", alone, ["method", "scenarios"], "The LLM alone, and every method on the scenarios it has scored",
-              "The LLM alone (`+exp=llm`) decides every slot; a call budget per invocation pauses it between scenarios "
-              "and the same command continues it, so it may cover only the first scenarios of the evaluation set. "
-              "Beside it, every method of the train sweep on those scenarios (the same rows of its final evaluation; "
-              "mean [95% CI] over seeds). The LLM alone's env draws the OU turns of scenario i from eval_seed + i "
-              "(one scenario a chunk), the others' from one generator for the whole set: same layouts, GEs and OU "
-              "starts, other OU turns. Its cost: decisions asked, HTTP calls (the rest from the answer cache), "
-              "failed answers flown by the heuristic, and the wall clock over every invocation.")
+        w.table("llm_alone", alone, ["method", "scenarios"],
+                "The LLM alone, and every method on the scenarios it has scored",
+                "The LLM alone (`+exp=llm`) decides every slot; a call budget per invocation pauses it between "
+                "scenarios and the same command continues it, so it may cover only the first scenarios of the "
+                "evaluation set. Beside it, every method of the train sweep on those scenarios (the same rows of its "
+                "final evaluation; mean [95% CI] over seeds). The LLM alone's env draws the OU turns of scenario i "
+                "from eval_seed + i (one scenario a chunk), the others' from one generator for the whole set: same "
+                "layouts, GEs and OU starts, other OU turns. Its cost: decisions asked, HTTP calls (the rest from the "
+                "answer cache), failed answers flown by the heuristic, and the wall clock over every invocation.")
 
-    # the long run(s): one method, one seed, its curve and final evaluation
-    long_runs = [r for r in runs if r.sweep == "long"]
-    for r in long_runs:
-        rows = [aggregate_rows([r], {"method": r.method})]
-        table(f"long_{r.method}", rows, ["method"], f"Long run: {r.method}, {r.world}, {r.frames} frames, {r.episodes} episodes")
-        figs = _fig_long(r, style, out, note)
-        result["figures"] += figs
-        md += [f"![long]({f})" for f in figs if f.endswith(".png")] + [""]
 
-    shown = display_path(root)
-    command = command or shlex.join(["python", "-m", "uavlae.experiments.report", shown])
-    header = [
+def _header(runs: list[Run], skipped: list[tuple[str, str]], worlds: list[str], shown: str, command: str) -> list[str]:
+    profiles = sorted({r.profile for r in runs if r.profile})
+    return [
         "# Experiments report",
         "",
         f"Runs directory: `{shown}`  ",
@@ -763,6 +795,9 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
         "DCR and SLR: higher is better; CR, RVR and ECR: lower is better.",
         "",
     ]
+
+
+def _footer(root: Path, runs: list[Run], skipped: list[tuple[str, str]]) -> list[str]:
     versions = defaultdict(set)
     for r in runs:
         for k, v in (r.packages or {}).items():
@@ -775,9 +810,7 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
                "## Skipped runs", ""]
     footer += [f"- `{p}`: {why}" for p, why in skipped] or ["none"]
     footer.append("")
-    _write_text(out / "report.md", "\n".join(header + md + footer))
-    dump_json(out / "report.json", {k: v for k, v in result.items() if k != "tables"} | {"tables": result["tables"]})
-    return result
+    return footer
 
 
 def one_factor_rows(runs: list[Run], axes: tuple[tuple[str, str, str, str], ...]

@@ -1,0 +1,167 @@
+"""The advice study's statistics and report, on numbers worked out by hand."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uavlae.experiments.advice_stats import (
+    Grid,
+    difference,
+    grid_from_rows,
+    interval,
+    point,
+    probability_of_improvement,
+)
+
+
+def _grid(landed, collected=None, total=None, seeds=None):
+    landed = np.asarray(landed, dtype=float)
+    S, N = landed.shape
+    collected = np.asarray(collected if collected is not None else landed, dtype=float)
+    total = np.asarray(total if total is not None else np.ones((S, N)), dtype=float)
+    zeros = np.zeros((S, N))
+    return Grid(seeds or list(range(S)), collected, total, zeros, landed, zeros, zeros + 1.0, zeros + 4.0)
+
+
+def test_pooled_metrics_by_hand():
+    """Two seeds x two scenarios: collected (1, 0 / 2, 1) of held (2, 2 / 2, 4): DCR = 4 / 10;
+    landed 1, 0 / 1, 1: SLR = 3 / 4; energy 1 of 4 every episode: ECR = 0.25."""
+    g = _grid([[1, 0], [1, 1]], collected=[[1, 0], [2, 1]], total=[[2, 2], [2, 4]])
+    assert point(g, "DCR") == pytest.approx(0.4)
+    assert point(g, "SLR") == pytest.approx(0.75)
+    assert point(g, "ECR") == pytest.approx(0.25)
+    assert point(g, "CR") == 0.0
+
+
+def test_probability_of_improvement_by_hand():
+    """x landed [[1, 0], [1, 1]], y [[0, 0], [1, 0]] (seeds x scenarios). Scenario 0: x {1, 1}
+    against y {0, 1}: pairs 1, 0.5, 1, 0.5 -> 3/4. Scenario 1: x {0, 1} against y {0, 0}:
+    0.5, 0.5, 1, 1 -> 3/4. P(X > Y) = 0.75; P(Y > X) = 0.25."""
+    x, y = _grid([[1, 0], [1, 1]]), _grid([[0, 0], [1, 0]])
+    p, lo, hi = probability_of_improvement(x, y, "SLR", n_boot=500)
+    assert p == pytest.approx(0.75)
+    assert 0.0 <= lo <= p <= hi <= 1.0
+    assert probability_of_improvement(y, x, "SLR", n_boot=10)[0] == pytest.approx(0.25)
+    # lower is better for CR: a cell that collides less is the better one
+    a, b = _grid([[0, 0]]), _grid([[0, 0]])
+    a.collided, b.collided = np.array([[0.0, 0.0]]), np.array([[1.0, 1.0]])
+    assert probability_of_improvement(a, b, "CR", n_boot=10)[0] == 1.0
+
+
+def test_intervals_stay_in_range_with_few_seeds():
+    """Three seeds with SLR 1, 1, 0 on every scenario: a t interval would pass 1 and 0; the
+    bootstrap's stays within [0, 1] and holds the point."""
+    g = _grid([[1] * 8, [1] * 8, [0] * 8])
+    p, lo, hi = interval(g, "SLR", n_boot=1000)
+    assert p == pytest.approx(2 / 3)
+    assert 0.0 <= lo < p < hi <= 1.0
+    # nothing varies: the interval is the point
+    assert interval(_grid([[1, 1], [1, 1]]), "SLR", n_boot=100) == (1.0, 1.0, 1.0)
+
+
+def test_paired_difference_is_exact_when_cells_differ_by_a_constant():
+    """y collects 0.1 of 1 less than x on every episode of the same seeds: every paired
+    resample differs by exactly 0.1 in DCR, so the interval is [0.1, 0.1]."""
+    rng = np.random.default_rng(0)
+    c = rng.uniform(0.2, 0.8, size=(3, 10))
+    x, y = _grid(np.zeros((3, 10)), collected=c), _grid(np.zeros((3, 10)), collected=c - 0.1)
+    p, lo, hi = difference(x, y, "DCR", n_boot=300)
+    assert (p, lo, hi) == pytest.approx((0.1, 0.1, 0.1))
+
+
+def test_grid_from_rows_needs_shared_scenarios():
+    rows = [{"seed": s, "scenario": n, "data_collected": 1, "data_total": 2, "collided": "False", "landed": "True",
+             "rz_speeding": "False", "energy_used": 1, "energy_total": 4} for s in (0, 1) for n in (0, 1)]
+    g = grid_from_rows(rows)
+    assert g.seeds == [0, 1] and point(g, "DCR") == 0.5 and point(g, "SLR") == 1.0
+    with pytest.raises(ValueError, match="scenarios"):
+        grid_from_rows(rows[:-1])
+
+
+def _write(path, rows):
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def test_report_from_records_alone(tmp_path):
+    """Plain SAC neither collects nor lands; SAC+Heuristic (teach) collects everything and lands
+    in both scenarios, on seeds 0 and 1: the differences are 1 whatever the resample, it beats
+    plain SAC in every pair (P = 1), and it learned (random never collects); plain SAC did not."""
+    eps, runs = [], []
+    for method, transfer, landed in (("sac", "override", (0, 0)), ("sac_heuristic", "teach", (1, 1))):
+        for seed in (0, 1):
+            runs.append({"world": "aid", "transfer": transfer, "method": method, "seed": seed, "sweep": "advice",
+                         "frames": 1000, "wall_s": 10.0, "advisor": "none" if method == "sac" else "heuristic/greedy",
+                         "clone_weight": 0.4, "commit": "abc", "dirty": "False", "machine": "cpu, 2 cores",
+                         "override/advised_fraction": "" if method == "sac" else 0.25,
+                         "override/trigger_rate": "" if method == "sac" else 0.3})
+            for ev, land in (("alone", landed), ("random", (0, 0))):
+                for n in (0, 1):
+                    eps.append({"world": "aid", "transfer": transfer, "method": method, "seed": seed, "sweep": "advice",
+                                "evaluation": ev, "scenario": n, "data_collected": land[n], "data_total": 1,
+                                "collided": "False", "landed": str(bool(land[n])), "rz_speeding": "False",
+                                "energy_used": 1, "energy_total": 4, "boundary_exit": "False", "length": 10})
+    _write(tmp_path / "runs.csv", runs)
+    _write(tmp_path / "episodes.csv", eps)
+    from uavlae.experiments.advice_report import build
+
+    build(tmp_path)
+    text = (tmp_path / "report.md").read_text()
+    assert "| sac_heuristic / teach | 1.000 [1.000, 1.000] | 1.00 [1.00, 1.00] | 1.000 [1.000, 1.000] |" in text
+    learned = [line for line in text.splitlines() if line.startswith("| sac_heuristic / teach | 1.000")]
+    assert learned and learned[-1].endswith("| yes |")
+    assert [line for line in text.splitlines() if line.startswith("| sac / override | 0.000")][-1].endswith("| no |")
+    first = text
+    build(tmp_path)
+    assert (tmp_path / "report.md").read_text() == first  # the same records, the same report
+    assert (tmp_path / "cells_aid.png").is_file() and (tmp_path / "curves_aid.png").is_file()
+
+
+def test_records_restore_and_reuse_on_real_runs(tmp_path, monkeypatch):
+    """Two tiny study runs (plain SAC, and SAC+Heuristic under teach) -> records -> restored
+    into an empty runs folder, where the study's reuse counts them as done and the records
+    step adds nothing twice; the tuning choice reads the restored runs."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from uavlae.experiments.advice import choose, restore, write_records
+    from tests.test_train import TINY, _cfg
+    from uavlae.train import reuse_state, run
+
+    # the study's runs sit at a relative root, as `make advice-study` puts them
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    root, out = Path("runs/advice"), tmp_path / "records"
+    eval_set = tmp_path / "eval_set.json"
+    common = [*TINY, "+sweep=advice", "experiment.root=runs", f"trainer.eval_set={eval_set}",
+              "env=shaped_geodesic", "trainer.eval_with_advisor=true", "trainer.keep_replay_at_end=true"]
+    cells = [("+exp=sac", "experiment.point=aid_override"),
+             ("+exp=sac_heuristic", "experiment.point=aid_tune", "algo.clone_weight=0.4",
+              "algo.clone_decay_frames=128", "advisor.phase_out_frames=64", "experiment.method=sac_heuristic_w0.4")]
+    for cell in cells:
+        run(_cfg(*common, *cell))
+    counts = write_records(root, out)
+    assert counts["runs"] == 2 and counts["unfinished"] == 0
+    assert counts["episodes"] == 2 * 3 + 2 * 4  # 2 scenarios; plain SAC has no with-advisor evaluation
+    runs = {r["method"]: r for r in csv.DictReader((out / "runs.csv").open())}
+    assert float(runs["sac_heuristic_w0.4"]["clone_weight"]) == 0.4
+    assert runs["sac_heuristic_w0.4"]["advisor"] == "heuristic/greedy"
+    assert float(runs["sac_heuristic_w0.4"]["override/frames"]) == 128
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")  # another checkout, another machine
+    fresh = Path("runs/advice")
+    assert restore(out, fresh) == 2
+    assert choose(fresh) == 0.4
+    cfg = OmegaConf.create(json.loads((fresh / "aid_override" / "sac" / "seed0" / "config.json").read_text()))
+    state, final = reuse_state(cfg)
+    assert state == "done" and final["frames"] == 128
+    assert write_records(fresh, out)["runs"] == 2  # the restored runs are not recorded again
+    assert sum(1 for _ in csv.DictReader((out / "episodes.csv").open())) == counts["episodes"]

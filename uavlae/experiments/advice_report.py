@@ -1,0 +1,497 @@
+"""``python -m uavlae.experiments.advice report results/advice``: the advice study's tables, figures and
+``report.md``, from the CSV records alone (``runs.csv``, ``episodes.csv``, ``curves.csv``,
+``claims_runs.csv``, ``claims_episodes.csv``; :mod:`uavlae.experiments.advice` writes them).
+
+Cells are (world, transfer, method). Every interval is the stratified bootstrap of
+:mod:`uavlae.experiments.advice_stats` over seeds x the 32 evaluation scenarios. The report has:
+the design and what of it is done; each cell's actor alone and actor with its advisor; the
+dependence on the advisor (advised fraction, trigger rate early and late, agreement); the
+difference and the probability of improvement of each advised cell against plain SAC in its
+world; the "learned" test against the uniform-random policy; the tuning of the cloning weight;
+the quick profile's SAC+Heuristic rows against their rerun with the per-row greedy advisor;
+and one verdict per claim of the paper.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from uavlae.experiments.advice_stats import (
+    HIGHER_BETTER,
+    METHOD_NAME,
+    METRICS,
+    Grid,
+    difference,
+    fmt,
+    grid_from_rows,
+    interval,
+    point,
+    probability_of_improvement,
+)
+from uavlae.files import atomic_write
+
+N_BOOT = 2000
+WORLDS = {"aid": "learning-aid world (env=shaped_geodesic, 400k frames)", "spec": "SPEC's world (env=default, 1M frames)"}
+TRANSFERS = {"override": "the paper's override", "teach": "override + cloning + phase-out", "aid": "no advisor, one learning aid",
+             "tune": "tuning (seeds apart)"}
+ADVISORS = {"sac": "none", "sac_heuristic": "greedy heuristic", "sac_heuristic_planner": "planner", "sac_hover": "hover",
+            "sac_random_advice": "uniform random", "sac_llm": "local LLM (SmolLM2-135M)",
+            "sac_ego_only": "none (ego-centric columns only)", "sac_progress_only": "none (progress reward only)"}
+# the study's design: (world, transfer, method, seeds)
+DESIGN = (
+    *[("aid", "override", m, 5) for m in ("sac", "sac_heuristic", "sac_heuristic_planner")],
+    *[("aid", "teach", m, 5) for m in ("sac_heuristic", "sac_heuristic_planner")],
+    *[("aid", "teach", m, 3) for m in ("sac_hover", "sac_random_advice")],
+    *[("spec", "override", m, 3) for m in ("sac", "sac_heuristic")],
+    ("spec", "teach", "sac_heuristic", 3),
+    *[("spec", "aid", m, 3) for m in ("sac_ego_only", "sac_progress_only")],
+    *[("aid", t, "sac_llm", 3) for t in ("override", "teach")],
+)
+
+
+def _read(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _write(path: Path, text: str) -> None:
+    atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _md(rows: list[dict[str, Any]], cols: list[str]) -> list[str]:
+    if not rows:
+        return ["(none yet)"]
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    out += ["| " + " | ".join(str(r.get(c, "")) for c in cols) + " |" for r in rows]
+    return out
+
+
+class Records:
+    """The study's records, grouped by cell."""
+
+    def __init__(self, d: Path):
+        self.runs = _read(d / "runs.csv")
+        self.episodes = _read(d / "episodes.csv")
+        self.curves = _read(d / "curves.csv")
+        self.claim_runs = _read(d / "claims_runs.csv")
+        self.claim_episodes = _read(d / "claims_episodes.csv")
+        self.unfinished = [r["path"] for r in _read(d / "unfinished.csv")]
+        self.by_cell: dict[tuple[str, str, str, str], list[dict[str, str]]] = defaultdict(list)
+        for e in self.episodes:
+            self.by_cell[(e["world"], e["transfer"], e["method"], e["evaluation"])].append(e)
+        self.claims: dict[tuple[str, str, str], list[dict[str, str]]] = defaultdict(list)
+        for e in self.claim_episodes:
+            self.claims[(e["transfer"], e["method"], e["evaluation"])].append(e)
+
+    def grid(self, world: str, transfer: str, method: str, evaluation: str = "alone") -> Grid | None:
+        rows = self.by_cell.get((world, transfer, method, evaluation))
+        return grid_from_rows(rows) if rows else None
+
+    def baseline(self, world: str, who: str) -> Grid | None:
+        """The heuristic or random baseline of a world: the same policy and scenarios in every
+        run, so one run's episodes (seed 0 of its grid)."""
+        for (w, _, _, ev), rows in sorted(self.by_cell.items()):
+            if w == world and ev == who:
+                first = min(int(r["seed"]) for r in rows)
+                return grid_from_rows([{**r, "seed": 0} for r in rows if int(r["seed"]) == first])
+        return None
+
+    def cells(self) -> list[tuple[str, str, str]]:
+        order = {(w, t, m): i for i, (w, t, m, _) in enumerate(DESIGN)}
+        found = {(w, t, m) for (w, t, m, ev) in self.by_cell if ev == "alone"}
+        return sorted(found, key=lambda c: (order.get(c, len(order)), c))
+
+    def run_rows(self, world: str, transfer: str, method: str) -> list[dict[str, str]]:
+        return [r for r in self.runs if (r["world"], r["transfer"], r["method"]) == (world, transfer, method)]
+
+
+def cell_label(method: str, transfer: str) -> str:
+    return f"{method} / {transfer}"
+
+
+def metric_cells(g: Grid | None, seed: int) -> dict[str, str]:
+    if g is None:
+        return {m: "" for m in METRICS}
+    return {m: fmt(*interval(g, m, N_BOOT, seed)) for m in METRICS}
+
+
+def cells_table(rec: Records, world: str) -> list[dict[str, Any]]:
+    rows = []
+    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+        alone = rec.grid(w, t, m)
+        row = {"cell": cell_label(m, t), "advisor": ADVISORS.get(m.split("_w")[0], m), "transfer": TRANSFERS.get(t, t),
+               "seeds": " ".join(map(str, alone.seeds)) if alone else ""}
+        row.update(metric_cells(alone, seed=i))
+        rows.append(row)
+    return rows
+
+
+def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
+    """Per advised cell: the advised fraction of stored transitions and the trigger rate (means
+    over seeds), the trigger rate over the first and the last fifth of training, the agreement
+    of the actor with executed advice, and DCR / SLR alone and with the advisor."""
+    rows = []
+    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+        runs = rec.run_rows(w, t, m)
+        if not runs or all(r.get("advisor", "none") == "none" for r in runs):
+            continue
+
+        def mean(key: str) -> float:
+            xs = [_num(r.get(key)) for r in runs]
+            xs = [x for x in xs if math.isfinite(x)]
+            return sum(xs) / len(xs) if xs else math.nan
+
+        early, late = trigger_phases(rec, w, t, m)
+        alone, withadv = rec.grid(w, t, m), rec.grid(w, t, m, "with_advisor")
+        row = {"cell": cell_label(m, t), "advised fraction": f"{mean('override/advised_fraction'):.3f}",
+               "trigger rate": f"{mean('override/trigger_rate'):.3f}",
+               "trigger, first / last fifth": f"{early:.3f} / {late:.3f}",
+               "actor within tol of advice": f"{mean('override/actor_agree'):.3f}",
+               "actor-advice gap": f"{mean('override/actor_gap'):.3f}"}
+        for metric in ("DCR", "SLR", "CR"):
+            row[f"{metric} alone"] = fmt(*interval(alone, metric, N_BOOT, i)) if alone else ""
+            row[f"{metric} with advisor"] = fmt(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
+        calls = [r.get("max_calls") for r in runs if r.get("max_calls") not in (None, "", "None")]
+        row["advisor budget"] = f"max_calls {calls[0]}" if calls else "none"
+        rows.append(row)
+    return rows
+
+
+def trigger_phases(rec: Records, world: str, transfer: str, method: str) -> tuple[float, float]:
+    """The logged trigger rate averaged over the first and the last fifth of training (over seeds)."""
+    early, late = [], []
+    by_seed: dict[str, list[tuple[int, float]]] = defaultdict(list)
+    for c in rec.curves:
+        if (c["world"], c["transfer"], c["method"]) == (world, transfer, method) and c.get("trigger_rate") not in ("", None):
+            by_seed[c["seed"]].append((int(c["frames"]), float(c["trigger_rate"])))
+    for pts in by_seed.values():
+        end = max(f for f, _ in pts)
+        early += [v for f, v in pts if f <= end / 5]
+        late += [v for f, v in pts if f > 4 * end / 5]
+    avg = lambda xs: sum(xs) / len(xs) if xs else math.nan  # noqa: E731
+    return avg(early), avg(late)
+
+
+def comparison_table(rec: Records, world: str) -> list[dict[str, Any]]:
+    """Each cell against plain SAC (``sac / override``) in the same world: DCR and SLR
+    differences (paired bootstrap) and the probability of improvement."""
+    base = rec.grid(world, "override", "sac")
+    rows = []
+    if base is None:
+        return rows
+    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+        if (t, m) == ("override", "sac") or t == "tune":
+            continue
+        g = rec.grid(w, t, m)
+        row = {"cell": cell_label(m, t), "vs": "sac / override"}
+        for metric in ("DCR", "SLR", "CR"):
+            row[f"Δ{metric}"] = fmt(*difference(g, base, metric, N_BOOT, i))
+            row[f"P(better) {metric}"] = fmt(*probability_of_improvement(g, base, metric, N_BOOT, i), digits=2)
+        rows.append(row)
+    return rows
+
+
+def learned_table(rec: Records, world: str) -> list[dict[str, Any]]:
+    """Learned: DCR and SLR intervals wholly above the uniform-random policy's on the same scenarios."""
+    rnd = rec.baseline(world, "random")
+    if rnd is None:
+        return []
+    r_dcr, r_slr = interval(rnd, "DCR", N_BOOT, 99), interval(rnd, "SLR", N_BOOT, 98)
+    rows = []
+    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+        g = rec.grid(w, t, m)
+        dcr, slr = interval(g, "DCR", N_BOOT, i), interval(g, "SLR", N_BOOT, i)
+        learned = dcr[1] > r_dcr[2] and slr[1] > r_slr[2]
+        rows.append({"cell": cell_label(m, t), "DCR": fmt(*dcr), "SLR": fmt(*slr), "random DCR": fmt(*r_dcr),
+                     "random SLR": fmt(*r_slr), "learned": "yes" if learned else "no"})
+    return rows
+
+
+def tuning_table(rec: Records) -> list[dict[str, Any]]:
+    rows = []
+    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[1] == "tune"):
+        g = rec.grid(w, t, m)
+        w_ = [r.get("clone_weight") for r in rec.run_rows(w, t, m)]
+        score = (point(g, "DCR") + point(g, "SLR")) / 2
+        rows.append({"clone_weight": w_[0] if w_ else "", "seeds": " ".join(map(str, g.seeds)),
+                     "DCR": fmt(*interval(g, "DCR", N_BOOT, i)), "SLR": fmt(*interval(g, "SLR", N_BOOT, i)),
+                     "mean of DCR and SLR (the choice)": f"{score:.3f}"})
+    return sorted(rows, key=lambda r: _num(r["clone_weight"]))
+
+
+def claims_grid(rec: Records, transfer: str, method: str, evaluation: str = "alone") -> Grid | None:
+    rows = rec.claims.get((transfer, method, evaluation))
+    return grid_from_rows(rows) if rows else None
+
+
+def rerun_table(rec: Records) -> list[dict[str, Any]]:
+    """The quick profile's committed SAC+Heuristic (its advisor forgot each row's memory when the
+    triggered set changed) against the study's rerun with the per-row greedy advisor, same seeds
+    and settings."""
+    old = claims_grid(rec, "default", "sac_heuristic")
+    new = rec.grid("aid", "override", "sac_heuristic")
+    rows = []
+    for label, g in (("quick profile, committed (advisor memory reset per call)", old),
+                     ("rerun, greedy advisor per env row", new.take([s for s in new.seeds if s in (old.seeds if old else [])])
+                      if new is not None and old is not None else new)):
+        if g is None or not g.seeds:
+            continue
+        rows.append({"sac_heuristic": label, "seeds": " ".join(map(str, g.seeds)), **metric_cells(g, seed=7)})
+    return rows
+
+
+def claim_rows(rec: Records) -> list[dict[str, Any]]:
+    """One row per claim of the paper, judged on the quick profile's runs and the study."""
+    out: list[dict[str, Any]] = []
+    llm = claims_grid(rec, "default", "sac_llm")
+    quick = "`make quick` and `make quick-llm` (results/quick), records in results/advice/claims_*.csv"
+
+    def row(claim: str, verdict: str, evidence: str, command: str = quick) -> None:
+        out.append({"claim": claim, "verdict": verdict, "evidence": evidence, "command": command})
+
+    if llm is None:
+        row("every claim", "untestable here", "the quick profile's SAC+LLM records are missing")
+        return out
+    learners = {m: claims_grid(rec, "default", m) for m in ("sac_llm", "sac_heuristic", "sac", "ppo")}
+    heur = claims_grid(rec, "default", "sac", "heuristic")
+    dcr = {m: interval(g, "DCR", N_BOOT, 1) for m, g in learners.items() if g is not None}
+    if heur is not None:
+        dcr["heuristic (greedy, alone)"] = interval(heur, "DCR", N_BOOT, 1)
+    above = [m for m in dcr if m != "sac_llm" and dcr[m][1] > dcr["sac_llm"][2]]
+    wins = all(dcr["sac_llm"][1] > v[2] for m, v in dcr.items() if m != "sac_llm")
+    row("SAC+LLM is best on DCR", "holds" if wins else ("does not hold" if above else "not shown (intervals overlap)"),
+        "DCR " + "; ".join(f"{m} {fmt(*v)}" for m, v in dcr.items()))
+    cr = interval(llm, "CR", N_BOOT, 2)
+    row("SAC+LLM's CR is near 0", "holds" if cr[2] <= 0.05 else "does not hold",
+        f"CR {fmt(*cr)} (near 0: the interval within [0, 0.05])")
+    rvr = interval(llm, "RVR", N_BOOT, 3)
+    row("SAC+LLM's RVR is 0", "holds" if rvr[2] == 0 else "does not hold", f"RVR {fmt(*rvr)}")
+    slr = interval(llm, "SLR", N_BOOT, 4)
+    row("SAC+LLM's SLR is near 100%", "holds" if slr[1] >= 0.95 else "does not hold",
+        f"SLR {fmt(*slr)} (near 100%: the interval within [0.95, 1])")
+    dth = {}
+    for key in rec.claims:
+        t, m, ev = key
+        if m == "sac_llm" and ev == "alone" and t.startswith("d_th=") and t.endswith("prompt=none"):
+            dth[float(t.split("=")[1].split("_")[0])] = claims_grid(rec, t, m)
+    if dth:
+        iv = {d: interval(g, "DCR", N_BOOT, 5) for d, g in sorted(dth.items())}
+        others_below = all(iv[d][2] < iv[15.0][1] for d in iv if d != 15.0) if 15.0 in iv else False
+        some_above = any(iv[d][1] > iv[15.0][2] for d in iv if d != 15.0) if 15.0 in iv else False
+        verdict = "holds" if others_below else ("does not hold" if some_above else "not shown (intervals overlap)")
+        row("d_th = 15 m is best", verdict, "DCR by d_th: " + "; ".join(f"{d:g} m {fmt(*v)}" for d, v in iv.items()),
+            "`make quick-llm` (the d_th sweep, 50k frames, 100 LLM rows a run)")
+    prompts = {t.split("prompt=")[1]: claims_grid(rec, t, m) for (t, m, ev) in rec.claims
+               if m == "sac_llm" and ev == "alone" and t.startswith("d_th=15.0_prompt=")}
+    if "none" in prompts:
+        full = prompts.pop("none")
+        diffs = {p: difference(full, g, "DCR", N_BOOT, 6) for p, g in sorted(prompts.items())}
+        matters = [p for p, d in diffs.items() if d[1] > 0]
+        hurts = [p for p, d in diffs.items() if d[2] < 0]
+        verdict = ("holds" if len(matters) == len(diffs) else "holds in part" if matters
+                   else "does not hold" if hurts else "not shown (every interval holds 0)")
+        row("each prompt guideline matters", verdict,
+            "DCR of the complete prompt minus each ablation: " + "; ".join(f"{p} {fmt(*d)}" for p, d in diffs.items()),
+            "`make quick-llm` (the prompt sweep, 50k frames, 100 LLM rows a run)")
+    sh = learners.get("sac_heuristic")
+    fps = {m: claims_grid(rec, "default", m) for m in ("sac_llm_fp0.3", "sac_llm_fp0.4", "sac_llm_fp0.5", "sac_llm_fp1.0")}
+    parts = []
+    better = []
+    if sh is not None:
+        d = difference(llm, sh, "DCR", N_BOOT, 7)
+        parts.append(f"SAC+LLM - SAC+Heuristic DCR {fmt(*d)}")
+        better.append(1 if d[1] > 0 else -1 if d[2] < 0 else 0)
+    fp_iv = {m: interval(g, "DCR", N_BOOT, 8) for m, g in fps.items() if g is not None}
+    if fp_iv:
+        parts.append("fp variants DCR " + "; ".join(f"{m} {fmt(*v)}" for m, v in fp_iv.items())
+                     + " (at 50k frames, 100 LLM rows: not the same budget as SAC+LLM's 400k)")
+    row("SAC+LLM is better than SAC+Heuristic and the fixed-probability variants",
+        "holds" if better and all(b > 0 for b in better) else "does not hold" if any(b < 0 for b in better)
+        else "not shown", "; ".join(parts))
+    row("DeepSeek-R1's advice is what makes SAC+LLM work", "untestable here",
+        "the local model is SmolLM2-135M (flown alone: DCR 0.08, as uniform random); the study's ladder of advisors "
+        "of known quality (hover, random, greedy, planner, the local LLM) shows instead what advice of a given quality "
+        "does to the actor", "`make advice-study`")
+    return out
+
+
+def findings(rec: Records) -> list[str]:
+    """Sentences that read the tables: per world, which cells beat plain SAC alone on DCR or SLR."""
+    lines = []
+    for world in WORLDS:
+        base = rec.grid(world, "override", "sac")
+        if base is None:
+            continue
+        better, worse = [], []
+        for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+            if (t, m) == ("override", "sac") or t == "tune":
+                continue
+            g = rec.grid(w, t, m)
+            for metric in ("DCR", "SLR"):
+                d = difference(g, base, metric, N_BOOT, i)
+                if d[1] > 0:
+                    better.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)})")
+                elif d[2] < 0:
+                    worse.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)})")
+        lines.append(f"- **{WORLDS[world]}**: the actor alone beats plain SAC's, with the difference's interval above 0: "
+                     + ("; ".join(better) if better else "no cell") + ". Worse than plain SAC: "
+                     + ("; ".join(worse) if worse else "no cell") + ".")
+    return lines
+
+
+def figures(rec: Records, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    made = []
+    for world in WORLDS:
+        cells = [c for c in rec.cells() if c[0] == world and c[1] != "tune"]
+        if not cells:
+            continue
+        fig, axes = plt.subplots(1, 2, figsize=(11, 0.45 * len(cells) + 1.8), sharey=True)
+        for ax, metric in zip(axes, ("DCR", "SLR")):
+            for j, (w, t, m) in enumerate(cells):
+                for k, (ev, colour) in enumerate((("alone", "tab:blue"), ("with_advisor", "tab:orange"))):
+                    g = rec.grid(w, t, m, ev)
+                    if g is None:
+                        continue
+                    p, lo, hi = interval(g, metric, N_BOOT, j)
+                    y = j + (0.15 if k else -0.15)
+                    ax.errorbar([p], [y], xerr=[[p - lo], [hi - p]], fmt="o", color=colour,
+                                label=("actor alone" if ev == "alone" else "actor with its advisor") if j == 0 else None)
+            ax.set_xlabel(f"{metric} (95% stratified bootstrap)")
+            ax.set_xlim(-0.02, 1.02)
+            ax.grid(alpha=0.3)
+        axes[0].set_yticks(range(len(cells)), [cell_label(m, t) for _, t, m in cells])
+        axes[0].legend(loc="lower right", fontsize=8)
+        fig.suptitle(WORLDS[world])
+        fig.tight_layout()
+        for ext in ("png", "pdf"):
+            path = out / f"cells_{world}.{ext}"
+            fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
+            made.append(path.name)
+        plt.close(fig)
+        # curves: the actor alone's DCR during training, and the trigger rate
+        fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
+        for (w, t, m) in cells:
+            for ax, col in zip(axes, ("DCR", "trigger_rate")):
+                pts: dict[int, list[float]] = defaultdict(list)
+                for c in rec.curves:
+                    if (c["world"], c["transfer"], c["method"]) == (w, t, m) and c.get(col) not in ("", None):
+                        pts[int(c["frames"])].append(float(c[col]))
+                if pts and (col == "DCR" or m != "sac"):
+                    xs = sorted(pts)
+                    ax.plot(xs, [sum(pts[x]) / len(pts[x]) for x in xs], label=cell_label(m, t), lw=1)
+        axes[0].set_title("actor alone, DCR during training (mean over seeds)")
+        axes[1].set_title("trigger rate during training (mean over seeds)")
+        for ax in axes:
+            ax.set_xlabel("frames")
+            ax.grid(alpha=0.3)
+        if axes[1].get_legend_handles_labels()[0]:
+            axes[1].legend(fontsize=7)
+        fig.suptitle(WORLDS[world])
+        fig.tight_layout()
+        for ext in ("png", "pdf"):
+            path = out / f"curves_{world}.{ext}"
+            fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
+            made.append(path.name)
+        plt.close(fig)
+    return made
+
+
+def progress_rows(rec: Records) -> list[dict[str, Any]]:
+    have = defaultdict(set)
+    for r in rec.runs:
+        have[(r["world"], r["transfer"], r["method"])].add(int(r["seed"]))
+    rows = []
+    for w, t, m, n in DESIGN:
+        done = len(have.get((w, t, m), ()))
+        rows.append({"world": w, "transfer": t, "method": m, "seeds wanted": n, "seeds done": done,
+                     "state": "done" if done >= n else "pending"})
+    return rows
+
+
+def compute_lines(rec: Records) -> list[str]:
+    if not rec.runs:
+        return ["No finished run yet."]
+    wall = sum(_num(r.get("wall_s")) for r in rec.runs if math.isfinite(_num(r.get("wall_s"))))
+    frames = sum(int(_num(r.get("frames"))) for r in rec.runs)
+    commits = sorted({r.get("commit", "") for r in rec.runs})
+    machines = sorted({r.get("machine", "") for r in rec.runs if r.get("machine")})
+    llm_calls = sum(_num(r.get("override/advisor/calls")) for r in rec.runs if math.isfinite(_num(r.get("override/advisor/calls"))))
+    dirty = sum(1 for r in rec.runs if r.get("dirty") == "True")
+    return [
+        f"- Finished runs: {len(rec.runs)}, {frames:,} training frames, {wall / 3600:.1f} h of training wall clock "
+        f"(evaluations not counted), one run at a time on one core of: {'; '.join(machines) or 'not recorded'}.",
+        f"- Code: commit {', '.join(commits)}" + (f" ({dirty} runs with uncommitted changes)" if dirty else " (clean)") + ".",
+        f"- LLM HTTP calls over the study: {int(llm_calls):,}.",
+        "- Disk: a finished run keeps its networks and records, not its replay buffer (a few MB); a run in flight holds "
+        "one checkpoint with its buffer, sized to the run (about 0.5 GB at 400k frames, 1.4 GB at 1M).",
+    ]
+
+
+def build(records_dir: Path) -> str:
+    rec = Records(records_dir)
+    out = records_dir
+    md = ["# Does advice teach? The advice study", "",
+          "Does an advisor that takes over near obstacles (the paper's SAC+LLM) make SAC better, and what must the "
+          "advisor know? SAC is trained with advisors of known quality (none; the paper's greedy heuristic; a global "
+          "planner; hovering; uniform-random actions; the local LLM), under the paper's override (the advisor's action "
+          "is executed and stored; only the critic learns from it) and under *teach* (the override, plus a cloning "
+          "term that pulls the actor's own action toward the executed advice, and a phase-out of the trigger so the "
+          "actor flies alone for the second half of training). Every run is then evaluated twice on the same 32 "
+          "scenarios (`results/eval_set_32.json`): the actor alone, as deployed, and the actor with its advisor.", "",
+          "Regenerate: `make advice-study` (resumable; `ADVICE_JOBS=2` on two cores), then `make advice-records "
+          "advice-report`; this page needs only the CSV files beside it.", "",
+          f"Statistics: {METHOD_NAME.format(n=N_BOOT)}. Differences pair the scenarios, and the seeds where both "
+          "cells ran the same ones; P(better) is rliable's probability of improvement on per-episode scores (ties "
+          "count a half), with its bootstrap interval. Intervals stay inside each metric's range.", "",
+          "## Design and progress", "", *_md(progress_rows(rec), ["world", "transfer", "method", "seeds wanted",
+                                                                    "seeds done", "state"]), "",
+          "Tuning seeds (100, 101) are apart from the verdict seeds (0-4). Teach: cloning weight chosen on the tuning "
+          "seeds, decayed linearly to 0 over the run; trigger (d_th) annealed to 0 over the first half. The LLM rung "
+          "runs under a call budget (`advisor.max_calls`), so its advised fraction is small: read it beside that "
+          "fraction.", "", "## Compute", "", *compute_lines(rec), ""]
+    if rec.unfinished:
+        md += [f"Runs in flight (not in any table): {', '.join(rec.unfinished)}.", ""]
+    for world, title in WORLDS.items():
+        table = cells_table(rec, world)
+        if not table:
+            continue
+        md += [f"## {title}", "", "The actor alone at the end of training, every metric (lower is better for CR, RVR, ECR):",
+               "", *_md(table, ["cell", "advisor", "transfer", "seeds", *METRICS]), "",
+               "Dependence on the advisor (means over seeds; the with-advisor evaluation uses the full trigger):", "",
+               *_md(dependence_table(rec, world), ["cell", "advised fraction", "trigger rate", "trigger, first / last fifth",
+                                                   "actor within tol of advice", "actor-advice gap", "DCR alone",
+                                                   "DCR with advisor", "SLR alone", "SLR with advisor", "CR alone",
+                                                   "CR with advisor", "advisor budget"]), "",
+               "Against plain SAC in the same world (difference, and probability of improvement):", "",
+               *_md(comparison_table(rec, world), ["cell", "ΔDCR", "P(better) DCR", "ΔSLR", "P(better) SLR", "ΔCR",
+                                                   "P(better) CR"]), "",
+               "Learned (DCR and SLR intervals above the uniform-random policy's on the same scenarios):", "",
+               *_md(learned_table(rec, world), ["cell", "DCR", "SLR", "random DCR", "random SLR", "learned"]), "",
+               f"![cells](cells_{world}.png)", "", f"![curves](curves_{world}.png)", ""]
+    md += ["## Tuning the cloning weight", "", *_md(tuning_table(rec), ["clone_weight", "seeds", "DCR", "SLR",
+                                                                        "mean of DCR and SLR (the choice)"]), "",
+           "## SAC+Heuristic of the quick profile, rerun with the per-row greedy advisor", "",
+           *_md(rerun_table(rec), ["sac_heuristic", "seeds", *METRICS]), "",
+           "## The paper's claims", "", *_md(claim_rows(rec), ["claim", "verdict", "evidence", "command"]), "",
+           "## Findings", "", *findings(rec), ""]
+    made = figures(rec, out)
+    _write(out / "report.md", "\n".join(md))
+    return f"wrote {out / 'report.md'} and {len(made)} figures"
