@@ -34,9 +34,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.factories import CONF_DIR, make_controller, make_env, make_learner, run_metadata, without_hydra_output
+from uavlae.factories import (
+    CONF_DIR, log_evaluation, make_controller, make_env, make_learner, run_metadata, without_hydra_output,
+)
 from uavlae.files import dump_json
-from uavlae.runlog import log_evaluation
 from uavlae.lifecycle import flatten_keys
 from uavlae.llm_alone import LLMAloneEvaluation
 from uavlae.policies.override import OverridePolicy

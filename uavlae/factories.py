@@ -10,9 +10,11 @@ that name the field); the env, algo, heuristic and LLM models live with their co
 from __future__ import annotations
 
 import importlib.metadata as metadata
+import json
 import os
 import subprocess
 import sys
+import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -515,6 +517,53 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[st
             **({"resume": "allow"} if resume else {}),
         )
     return RunLogger(loggers, run_id, run_dir)
+
+
+def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any] | None = None) -> None:
+    """One ``uavlae.evaluate`` (a point of a scenario sweep) as its own wandb run, in the group of
+    its invocation: the metrics at the checkpoint's frames, in the summary, the per-episode records
+    as a table and the trajectory pictures. ``record``: the evaluation's ``evaluation.json``
+    (default: read from ``out_dir``). Nothing when ``logger.wandb.mode=disabled``."""
+    from uavlae.runlog import episodes_table, numbers, wandb_group, wandb_name, wandb_tags
+
+    lc = make_logger_config(cfg.logger)
+    if lc.wandb.mode == "disabled":
+        return
+    if record is None:
+        record = json.loads((Path(out_dir) / "evaluation.json").read_text())
+    from torchrl.record.loggers import WandbLogger
+
+    ex = make_experiment_config(cfg.experiment)
+    spec = record["spec"]
+    method, seed, frames = str(spec["method"]), int(spec["seed"]), int(spec.get("frames") or 0)
+    logger = WandbLogger(
+        exp_name=wandb_name(method, seed, ex),
+        offline=lc.wandb.mode == "offline",
+        save_dir=str(Path(out_dir).resolve()),  # absolute, as make_logger's: a joined service has its own cwd
+        id=f"eval-{method}-{uuid.uuid4().hex[:10]}"[:64],
+        project=lc.wandb.project,
+        entity=lc.wandb.entity,
+        group=wandb_group(lc.wandb.group, ex),
+        tags=wandb_tags(lc.wandb.tags, ex, seed, kind="evaluate", method=method),
+        job_type="evaluate",
+        config={k: record.get(k) for k in ("spec", "experiment", "env", "meta", "eval_set_file", "n_scenarios")},
+        mode=lc.wandb.mode,
+    )
+    try:
+        metrics = numbers(record["metrics"], "eval/")
+        logger.log_metrics(metrics, step=frames)
+        payload: dict[str, Any] = {}
+        if (Path(out_dir) / "episodes.csv").is_file():
+            payload["eval/episodes"] = episodes_table(Path(out_dir) / "episodes.csv")
+        import wandb
+
+        for p in sorted(Path(out_dir).glob("trajectory_*.png")):
+            payload[f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}"] = wandb.Image(str(p))
+        if payload:
+            logger.experiment.log(payload)
+        logger.experiment.summary.update({**metrics, "frames": frames, "wall_s": record.get("wall_s")})
+    finally:
+        logger.close()
 
 
 def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:

@@ -15,14 +15,14 @@
 
 Training runs log through :class:`uavlae.factories.RunLogger`, which publishes the summary and the
 tables when it closes after the run has written its final metrics; ``uavlae.evaluate`` calls
-:func:`log_evaluation` once its record is written.
+:func:`uavlae.factories.log_evaluation` once its record is written. This module imports nothing
+of uavlae beyond plain helpers, so the factories can use it.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -110,50 +110,3 @@ def publish_final(experiment: Any, run_dir: Path) -> bool:
         experiment.log(tables)
     experiment.summary.update(numbers(final))
     return True
-
-
-def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any] | None = None) -> None:
-    """One ``uavlae.evaluate`` (a point of a scenario sweep) as its own wandb run, in the group of
-    its invocation: the metrics at the checkpoint's frames, in the summary, the per-episode records
-    as a table and the trajectory pictures. ``record``: the evaluation's ``evaluation.json``
-    (default: read from ``out_dir``). Nothing when ``logger.wandb.mode=disabled``."""
-    from uavlae.factories import make_experiment_config, make_logger_config
-
-    lc = make_logger_config(cfg.logger)
-    if lc.wandb.mode == "disabled":
-        return
-    if record is None:
-        record = json.loads((Path(out_dir) / "evaluation.json").read_text())
-    from torchrl.record.loggers import WandbLogger
-
-    ex = make_experiment_config(cfg.experiment)
-    spec = record["spec"]
-    method, seed, frames = str(spec["method"]), int(spec["seed"]), int(spec.get("frames") or 0)
-    logger = WandbLogger(
-        exp_name=wandb_name(method, seed, ex),
-        offline=lc.wandb.mode == "offline",
-        save_dir=str(Path(out_dir).resolve()),  # absolute, as make_logger's: a joined service has its own cwd
-        id=f"eval-{method}-{uuid.uuid4().hex[:10]}"[:64],
-        project=lc.wandb.project,
-        entity=lc.wandb.entity,
-        group=wandb_group(lc.wandb.group, ex),
-        tags=wandb_tags(lc.wandb.tags, ex, seed, kind="evaluate", method=method),
-        job_type="evaluate",
-        config={k: record.get(k) for k in ("spec", "experiment", "env", "meta", "eval_set_file", "n_scenarios")},
-        mode=lc.wandb.mode,
-    )
-    try:
-        metrics = numbers(record["metrics"], "eval/")
-        logger.log_metrics(metrics, step=frames)
-        payload: dict[str, Any] = {}
-        if (Path(out_dir) / "episodes.csv").is_file():
-            payload["eval/episodes"] = episodes_table(Path(out_dir) / "episodes.csv")
-        import wandb
-
-        for p in sorted(Path(out_dir).glob("trajectory_*.png")):
-            payload[f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}"] = wandb.Image(str(p))
-        if payload:
-            logger.experiment.log(payload)
-        logger.experiment.summary.update({**metrics, "frames": frames, "wall_s": record.get("wall_s")})
-    finally:
-        logger.close()
