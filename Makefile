@@ -11,7 +11,7 @@ export WANDB_MODE ?= offline
 
 # The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run to a few
 # minutes; `make run RUN_ARGS=` trains with the full budget of conf/trainer/default.yaml.
-RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8
+RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8 trainer.eval_advisor_max_calls=16
 
 .PHONY: setup run demo test test-slow bench bench-env bench-llm bench-sac clean
 
