@@ -10,8 +10,9 @@ export MKL_NUM_THREADS ?= 1
 export WANDB_MODE ?= offline
 
 # The main job: SAC+LLM with the embedded local LLM. RUN_ARGS keeps the first run short (1024
-# frames); `make run RUN_ARGS=` trains with the full budget of uavlae/conf/trainer/default.yaml.
-RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8
+# frames, 16 LLM rows for its with-advisor evaluation); `make run RUN_ARGS=` trains with the full
+# budget of uavlae/conf/trainer/default.yaml.
+RUN_ARGS ?= trainer.total_frames=1024 trainer.init_random_frames=256 trainer.eval_episodes=8 trainer.eval_advisor_max_calls=16
 
 .PHONY: setup run demo test test-slow bench bench-env bench-llm bench-sac clean
 

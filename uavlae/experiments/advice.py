@@ -48,6 +48,9 @@ CURVE_SCALARS = (("eval/DCR", "DCR"), ("eval/SLR", "SLR"), ("eval/CR", "CR"), ("
                  ("override/phase", "phase"))
 
 
+CURVE_EVERY = 8
+
+
 def _read_json(path: Path) -> Any:
     return json.loads(path.read_text())
 
@@ -147,7 +150,9 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     for name, col in CURVE_SCALARS:
         for step, value in _scalar(d, name):
             curves[step][col] = value
-    curve_rows = [{**key, "frames": step, **vals} for step, vals in sorted(curves.items())]
+    # every evaluation, and the logged counters every CURVE_EVERY-th batch (a curve, not a log)
+    curve_rows = [{**key, "frames": step, **vals} for i, (step, vals) in enumerate(sorted(curves.items()))
+                  if "DCR" in vals or i % CURVE_EVERY == 0]
     return run, episodes, curve_rows
 
 
@@ -230,7 +235,10 @@ def write_claim_records(quick_root: Path, out: Path) -> dict[str, int]:
             run, eps, _ = rec
             run["path"] = str(d.relative_to(quick_root))
             runs.append(run)
-            episodes.extend(e for e in eps if e["evaluation"] in ("alone", "random", "heuristic"))
+            # the baselines fly the same set in every run: plain SAC's seed 0 keeps them
+            keep_baselines = (sweep, d.parent.name, d.name) == ("train", "sac", "seed0")
+            episodes.extend(e for e in eps if e["evaluation"] == "alone"
+                            or (keep_baselines and e["evaluation"] in ("random", "heuristic")))
     _write_csv(out / "claims_runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
     _write_csv(out / "claims_episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
     return {"runs": len(runs), "episodes": len(episodes)}
