@@ -67,9 +67,9 @@ from uavlae.factories import (
 )
 from uavlae.files import atomic_write, train_eval_dir
 from uavlae.lifecycle import RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, flatten_keys, lock_name, plan
-from uavlae.progress import progress_for
 from uavlae.policies.override import OverridePolicy
 from uavlae.policies.random import UniformRandomPolicy
+from uavlae.progress import progress_for
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
 log = logging.getLogger(__name__)
