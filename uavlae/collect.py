@@ -201,10 +201,13 @@ class UAVCollector:
 
     def rollout_batch(self) -> TensorDictBase:
         """``T`` steps of every row stacked to ``[B, T]`` (time last)."""
-        steps = [self.step() for _ in range(self.T)]
-        batch = torch.stack(steps, dim=1)
+        return self.batch_of([self.step() for _ in range(self.T)])
+
+    def batch_of(self, steps: Sequence[TensorDictBase]) -> TensorDictBase:
+        """The ``T`` transitions of one batch, stacked to ``[B, T]`` and counted as a batch (a
+        caller that steps the collector itself, to work between the steps, ends a batch so)."""
         self.batches += 1
-        return batch
+        return torch.stack(list(steps), dim=1)
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while self.total_frames < 0 or self.frames < self.total_frames:

@@ -44,7 +44,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         fps = summary.get("fps")
         lines.append(
             f"{name}: trained {frames:,} environment frames ({100 * frames / full:.2g}% of a full run's {full:,}; "
-            f"`make run RUN_ARGS=` trains all of it) with {int(summary['updates']):,} gradient steps"
+            f"trainer.total_frames sets the budget) with {int(summary['updates']):,} gradient steps"
             + (f", {summary['train_s']:.1f} s at {fps:.1f} frames/s (evaluation not counted)" if fps else "") + "."
         )
     else:

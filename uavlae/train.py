@@ -8,7 +8,7 @@ The loop (:func:`train`), top to bottom, in the shape of TorchRL's ``sota-implem
             updates.pay()               the gradient steps owed so far run while they are in flight
             collector.finish_step()     the (updated) actor acts, the answers are merged, the env steps
             updates.store()             the transition goes to the replay buffer; utd_ratio * B steps are owed
-        on-policy (ppo, cpo, wang, theile): collector.rollout_batch(), then learner.update(batch)
+        on-policy (ppo, cpo, wang, theile): T collector.step()s, then learner.update(batch)
         log the batch; evaluate the actor alone every eval_every_frames; checkpoint every
         checkpoint_every_frames (and when SIGTERM or SIGINT asks the run to stop)
     at the end: the owed gradient steps, a final evaluation, the actor with its advisor (advised
@@ -239,14 +239,21 @@ class Training:
             self.bar.update(transition.batch_size[0])
         if self.budget_spent():
             self.updates.flush()  # the last step's gradient steps have no next step to run in
-        return torch.stack(steps, dim=1)
+        return self.collector.batch_of(steps)
+
+    def collect_on_policy(self) -> TensorDictBase:
+        """T env steps: the rollout an on-policy update learns from."""
+        steps = []
+        for _ in range(self.collector.T):
+            steps.append(self.collector.step())
+            self.bar.update(self.collector.B)
+        return self.collector.batch_of(steps)
 
     def update_on_policy(self, batch: TensorDictBase) -> float:
         t0 = time.perf_counter()
         self.learner.anneal(self.collector.frames)
         self.train_logs = self.learner.update(batch)
         self.counters["updates"] += 1
-        self.bar.update(batch.numel())
         return time.perf_counter() - t0
 
     def log_batch(self, batch: TensorDictBase, update_s: float, overlap_s: float) -> None:
@@ -322,7 +329,7 @@ def _loop(t: Training, stop: GracefulStop) -> None:
             batch = t.collect_off_policy()
             update_s, overlap_s, t.train_logs = t.updates.seconds, t.updates.overlap_seconds, t.updates.logs
         else:
-            batch = t.collector.rollout_batch()
+            batch = t.collect_on_policy()
             update_s, overlap_s = t.update_on_policy(batch), 0.0
         t.counters["wall_s"] = wall0 + (time.perf_counter() - t0)  # over every resumed part
         t.counters["train_s"] = t.counters.get("train_s", 0.0) + (time.perf_counter() - t_batch)
