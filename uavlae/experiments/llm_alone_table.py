@@ -34,20 +34,22 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[st
     from uavlae.envs import make_env_config
     from uavlae.envs.metrics import aggregate
     from uavlae.envs.scenario import load_scenarios
-    from uavlae.evaluate import eval_set_path
+    from uavlae.evaluate import eval_set_path, make_evaluation
     from uavlae.factories import make_heuristic
-    from uavlae.llm_alone import LLMAloneEvaluation
 
     c = OmegaConf.create(cfg)
+    # the run's chunks and seeds, none of its call budget or shards: the heuristic flies them all here
+    for key, value in (("trainer.llm_call_budget", None), ("trainer.eval_shards", 1), ("trainer.eval_shard", 0),
+                       ("trainer.eval_plots", 0)):
+        OmegaConf.update(c, key, value, merge=False)
     env_cfg = make_env_config(c.env)
     tr = c.trainer
     scenarios = load_scenarios(eval_set_path(run_dir, tr.get("eval_set")))  # a sweep's shared set, else the run's own
     chunk = int(tr.eval_chunk or len(scenarios))
     scenarios = scenarios[: (max(rows) // chunk + 1) * chunk]
     with tempfile.TemporaryDirectory() as tmp:
-        ev = LLMAloneEvaluation(env_cfg, scenarios, make_heuristic(c, env_cfg), tmp, seed=int(tr.eval_seed),
-                                chunk=tr.eval_chunk, max_steps=tr.eval_max_steps, n_plots=0)
-        records = ev.run()["records"]
+        flight = make_evaluation(c, env_cfg, scenarios, chunked=True).fly(make_heuristic(c, env_cfg), tmp)
+        records = flight.llm_alone["records"]
     keep = torch.isin(records["row"], torch.tensor(rows))
     return aggregate({k: v[keep] for k, v in records.items()})
 
