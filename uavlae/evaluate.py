@@ -159,7 +159,10 @@ def config_differences(want: Any, have: Any) -> tuple[list[str], list[str]]:
     dotted keys ``(changed, added)``. ``added`` are the keys ``have`` lacks: settings added to the
     code after it was saved, whose defaults keep the earlier behaviour, so no difference. A key
     only ``have`` holds (one since removed) counts as changed."""
+    from uavlae.factories import REMOVED_KEYS
+
     w, h = flatten_keys(want), flatten_keys(have)
+    h = {k: v for k, v in h.items() if k not in REMOVED_KEYS}  # settings removed since, which had no effect
     added = sorted(set(w) - set(h))
     changed = sorted(k for k in set(w) | set(h) if k not in added and w.get(k) != h.get(k))
     return changed, added
@@ -329,5 +332,8 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    from uavlae.llm.config import refuse_secret_overrides
+
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down
     sys.argv = without_hydra_output(sys.argv)
     main()

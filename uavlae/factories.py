@@ -24,7 +24,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
-from uavlae.validation import StrictModel
+from uavlae.validation import StrictModel, error_lines
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONF_DIR = REPO_ROOT / "conf"
@@ -46,14 +46,28 @@ def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
     try:
         return model.model_validate(_container(cfg))
     except ValidationError as e:
-        lines = [
-            f"{group}.{'.'.join(str(p) for p in err['loc'])}: {err['msg']} (got {err.get('input')!r})"
-            for err in e.errors()
-        ]
-        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(lines)) from None
+        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
 
 
 # ---------------------------------------------------------------------------- configs
+
+# Settings removed from the code, which a run saved before holds: they had no effect (llm.fallback
+# was logged, never applied: advisor.fallback acted), so a saved config is read without them.
+REMOVED_KEYS = ("llm.fallback",)
+
+
+def without_removed_keys(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved config (nested dicts) without :data:`REMOVED_KEYS`."""
+    out = _container(cfg)
+    for key in REMOVED_KEYS:
+        *parents, leaf = key.split(".")
+        node: Any = out
+        for k in parents:
+            node = node.get(k) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    return out
+
 
 
 class TrainerConfig(StrictModel):
@@ -223,7 +237,7 @@ def validate_config(cfg: DictConfig) -> None:
                 f"advisor.kind={adv.kind!r} with algo {name!r}: the override stores executed actions for an "
                 "off-policy learner; on-policy PPO/CPO would need the advisor's log-probabilities"
             )
-    if adv.kind == "llm" or run.controller == "llm":
+    if cfg.get("llm") is not None:  # always: a key given in its place is refused before anything is written
         from uavlae.llm import make_llm_config
 
         make_llm_config(cfg.llm)

@@ -59,6 +59,7 @@ from uavlae.factories import (
     run_metadata,
     trim_csv_scalars,
     validate_config,
+    without_removed_keys,
 )
 from uavlae.files import atomic_write, train_eval_dir
 
@@ -132,7 +133,7 @@ def _prepare(cfg: DictConfig) -> tuple[DictConfig, dict[str, Any] | None]:
     ckpt = None
     if cfg.resume:
         ckpt, file = load_checkpoint(cfg.resume)
-        saved = OmegaConf.create(ckpt["config"])
+        saved = OmegaConf.create(without_removed_keys(ckpt["config"]))
         for key in RESUME_RUNTIME_KEYS:
             OmegaConf.update(saved, key, OmegaConf.select(cfg, key), merge=False)
         saved.resume = str(file)
@@ -658,4 +659,9 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    import sys
+
+    from uavlae.llm.config import refuse_secret_overrides
+
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line into the run folder
     main()
