@@ -201,7 +201,8 @@ METRIC_MEANINGS = {
 def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
     """The override's run counters that a replay reproduces: no timings, none of the
     advisor's transport counts (a replayed answer is a cache hit, a live one a call)."""
-    return {k: v for k, v in totals.items() if not k.startswith("advisor/") and not k.endswith("_s")}
+    return {k: v for k, v in totals.items()  # the student learns from the answers alone: replayed exactly
+            if (not k.startswith("advisor/") or k.startswith("advisor/student/")) and not k.endswith("_s")}
 
 
 def _baselines(cfg: DictConfig, env_cfg: Any, evaluator: Evaluator, run_dir: Path) -> dict[str, float]:
@@ -296,6 +297,21 @@ def format_summary(summary: dict[str, Any]) -> str:
                 + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
                    if summary.get("overlap_s") else "") + "."
             )
+    cost = summary.get("cost")
+    if cost and cost.get("triggered") is not None:
+        money = cost.get("money", float("nan"))
+        lines.append(
+            f"  Cost: {int(cost['triggered']):,} triggered rows; executed from the LLM's answer {int(cost['rows_llm']):,}, "
+            f"the student's {int(cost['rows_student']):,}, a held answer {int(cost['rows_held']):,}, the fallback "
+            f"{int(cost['rows_fallback']):,}; {int(cost['tokens_in']):,} tokens in ({int(cost['tokens_in_cached']):,} cached), "
+            f"{int(cost['tokens_out']):,} out; the LLM answered for {cost['llm_s']:.0f} s, the loop waited {cost['wait_s']:.0f} s"
+            + (f"; {money:.4g} {cost.get('currency')}" if money == money else "; no price in the llm config") + ".")
+        if ov and ov.get("advisor/student/rows"):
+            lines.append(
+                f"  Student: the LLM was asked for {int(ov['advisor/student/llm_rows']):,} of {int(ov['advisor/student/rows']):,} "
+                f"rows (warm-up {int(ov['advisor/student/asked_warmup']):,}, unsure {int(ov['advisor/student/asked_unsure']):,}, "
+                f"novel {int(ov['advisor/student/asked_novel']):,}, audit {int(ov['advisor/student/asked_audit']):,}); on the "
+                f"audited rows its velocity lay {ov.get('advisor/student/audit_err_mps', float('nan')):.2f} m/s from the LLM's.")
     la = summary.get("llm_alone")
     if la:
         c = la["cost"]
@@ -620,6 +636,7 @@ def _train(
     }
     if has_advisor:
         final.update(_prefixed("override", _deterministic_counts(policy.run_totals())))
+        final.update(_prefixed("cost", policy.cost()))  # what the LLM cost: measured, not replayed
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(policy, evaluator, run_dir, tr, str(cfg.name)))
     t_base = time.perf_counter()
@@ -636,6 +653,7 @@ def _train(
         "eval_episodes": len(evaluator.scenarios),
         "metrics": {f"{cfg.name} (trained actor)": last_eval, **_advised_row(final, str(cfg.name)), **_baseline_rows(final)},
         "advisor_kind": str(cfg.advisor.kind), "override": policy.run_totals() if has_advisor else None,
+        "cost": {**policy.cost(), "currency": policy.currency()} if has_advisor else None,
         "pictures": _pictures(run_dir, counters["frames"]),
     })
     log.info("%s done at %d frames: %s", cfg.name, counters["frames"], {k: round(last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
