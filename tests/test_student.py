@@ -13,7 +13,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from uavlae.llm import Advice, AdviceFailure, AdvisorState, EndpointError, FailureKind, GroundEquipment, OtherUAV, WorldLimits
-from uavlae.policies.override import FALLBACK, LLM, POLICY, STUDENT, LLMAdvisorAdapter, OverridePolicy
+from uavlae.policies.override import FALLBACK, LLM, STUDENT, LLMAdvisorAdapter, OverridePolicy
 from uavlae.policies.student import (
     N_CELLS, N_DCU, N_ENTITY, AmortizedAdvisor, Student, StudentConfig, encode, make_student_config, shown_state,
 )
@@ -166,7 +166,7 @@ def fly(env, pol, steps):
 def test_the_llm_answers_the_warm_up_then_the_student_answers_where_it_is_sure():
     """8 rows a slot; min_answers 16: the LLM answers the first two slots (16 rows), then a
     student that is never unsure (threshold 10) and never audits answers every row alone."""
-    env, llm, adv, pol = fly_setup = policy({"min_answers": 16, "unsure": 10.0, "novel_min": 0, "audit_fraction": 0.0})
+    env, llm, adv, pol = policy({"min_answers": 16, "unsure": 10.0, "novel_min": 0, "audit_fraction": 0.0})
     src, act = fly(env, pol, 5)
     assert (src[:2] == LLM).all() and (src[2:] == STUDENT).all() and len(llm.asked) == 16
     snap = pol.snapshot()
@@ -194,6 +194,28 @@ def test_max_llm_rows_caps_the_llm_and_the_student_answers_the_rest():
     # slot 1: 8 rows (warm-up); slot 2: the first 4 in batch order; then none
     assert len(llm.asked) == 12 and (src[0] == LLM).all()
     assert src[1].tolist() == [LLM] * 4 + [STUDENT] * 4 and (src[2:] == STUDENT).all()
+
+
+def test_max_llm_share_spends_a_credit_earned_per_triggered_row_on_the_least_sure_rows():
+    """A student never sure (threshold 1e-9), a share of 1/4: after the 8-row warm-up each slot
+    of 8 rows earns 2 rows of credit, and the LLM answers exactly the 2 rows whose members
+    disagree most."""
+    env, llm, adv, pol = policy({"min_answers": 8, "unsure": 1e-9, "novel_min": 0, "audit_fraction": 0.0,
+                                 "max_llm_share": 0.25})
+    td = env.reset()
+    for slot in range(5):
+        spread = None
+        if slot:
+            states = adv.llm.states(td)
+            _, spread = adv.student.predict(*encode(states, adv.cfg)[:2])
+        td = pol(td)
+        src = td["action_source"]
+        if slot == 0:
+            assert (src == LLM).all()
+        else:
+            assert (src == LLM).nonzero().squeeze(-1).tolist() == sorted(spread.topk(2).indices.tolist())
+        td = env.step_and_maybe_reset(td)[1]
+    assert len(llm.asked) == 8 + 4 * 2 and adv.credit == 0.0
 
 
 def test_a_failed_llm_row_takes_the_fallback_and_an_outage_stops_the_step():
@@ -282,5 +304,4 @@ def test_cost_counts_rows_tokens_and_money_by_hand():
         (3, 3, 0, 4, 1000, 200)
     # (600 computed x 0.5 + 400 cached x 0.1 + 200 out x 2.0) / 1e6
     assert c["money"] == pytest.approx(7.4e-4) and c["llm_s"] == 2.5 and pol.currency() == "USD"
-    assert OverridePolicy(actor, None, mode="never").cost() == {}
-    assert POLICY == 0
+    assert OverridePolicy(actor, None, mode="never").cost() == {}  # no LLM, no cost

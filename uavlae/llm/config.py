@@ -211,5 +211,6 @@ def make_llm_config(cfg: Any = None, **overrides: Any) -> LLMConfig:
         node[leaf] = value
     _refuse_secrets_and_removed(data)
     if isinstance(data.get("api_key_env"), str) and not looks_like_variable_name(data["api_key_env"]):
-        raise ValueError("invalid LLM config:\n  llm.api_key_env " + NOT_A_VARIABLE_NAME.format(n=len(data["api_key_env"])))
+        n = len(data["api_key_env"])
+        raise ValueError("invalid LLM config:\n  llm.api_key_env " + NOT_A_VARIABLE_NAME.format(n=n))
     return parse_model(LLMConfig, data, prefix="llm", title="LLM")

@@ -47,10 +47,10 @@ successful actions, default LLM), ``fallback`` (its own fallback, used when the 
 tokens: :meth:`OverridePolicy.cost` then counts the money), ``close()``,
 ``start(td_rows, rows)``: the same request sent without waiting, returning a handle whose
 ``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on the server
-while the caller works) and whose ``failures`` says what failed, and ``observe(td)``: called with the whole batch at every
-step the override is on, before any row is asked, by an advisor whose answers depend on what it
-remembers of earlier slots (the heuristics): it then keeps that memory per env row, however the
-set of triggered rows changes from slot to slot.
+while the caller works) and whose ``failures`` says what failed, and ``observe(td)``: called
+with the whole batch at every step the override is on, before any row is asked, by an advisor
+whose answers depend on what it remembers of earlier slots (the heuristics): it then keeps that
+memory per env row, however the set of triggered rows changes from slot to slot.
 
 A step in two halves: :meth:`OverridePolicy.begin` decides the triggered rows from the state
 alone and starts their advice; :meth:`OverridePolicy.finish` runs the actor, waits for the
@@ -665,7 +665,8 @@ class OverridePolicy(TensorDictModuleBase):
         if now - self._warned_at < WARN_EVERY_S:
             return
         why = sorted(set(getattr(pending.handle, "failures", None) or []))
-        quiet = f"; {self._failed_quiet - 1} step(s) with failures since the last warning" if self._warned_at > -math.inf else ""
+        since = self._failed_quiet - 1
+        quiet = f"; {since} step(s) with failures since the last warning" if self._warned_at > -math.inf else ""
         log.warning("advice failed on %d of %d asked row(s)%s; advisor.fallback=%s acts there%s", n_bad, n_asked,
                     f" ({'; '.join(w[:160] for w in why[:3])})" if why else "", self.fallback, quiet)
         self._warned_at, self._failed_quiet = now, 0

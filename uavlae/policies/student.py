@@ -15,8 +15,11 @@ is sure of; the LLM answers the rest. Per triggered row, the LLM is asked when
   measures the student's fidelity on an unbiased sample of rows;
 
 and never once ``max_llm_rows`` rows have been asked in the run (then the student answers
-every row). The LLM's answer is executed on the rows it answers (``action_source`` LLM), the
-student's mean on the others (``action_source`` STUDENT).
+every row). With ``max_llm_share`` the unsure and novel rows are asked only while the LLM's share
+of the triggered rows stays under it (a credit earned per triggered row), novel and least sure
+first: a spending rate, where ``max_llm_rows`` is a total. The LLM's answer is executed on the
+rows it answers (``action_source`` LLM), the student's mean on the others (``action_source``
+STUDENT).
 
 The student sees what the prompt shows the LLM and no more: the rectangles of the zones, the
 GEs with remaining data, the visible OUs, the landing area and the DCU's position and velocity,
@@ -73,11 +76,20 @@ class StudentConfig(StrictModel):
     novel_min: int = Field(2, ge=0)  # answers a situation needs before the student answers in it (0: off)
     audit_fraction: float = Field(0.01, ge=0, le=1)  # rows the LLM answers anyway, drawn at random
     max_llm_rows: int | None = Field(None, ge=1)  # rows the LLM may answer in the run (null: no cap)
+    # after the warm-up, the LLM's share of the triggered rows at most (null: no bound): each
+    # triggered row earns this much credit (at most share_burst kept), each row the LLM answers
+    # spends one; unsure and novel rows are asked, most novel then least sure first, while credit
+    # lasts. Audits are always asked (they spend credit too), so the share is max(this, audit_fraction)
+    max_llm_share: float | None = Field(None, gt=0, le=1)
+    share_burst: float = Field(64.0, ge=1)
     near_m: float = Field(10.0, gt=0)  # length scale of the near-field feature exp(-d / near_m)
     close_m: float = Field(5.0, gt=0)  # a situation's distance bands: inside, within close_m, beyond
 
     @model_validator(mode="after")
     def _check(self) -> "StudentConfig":
+        if self.capacity < self.min_answers:
+            raise ValueError(f"advisor.student.capacity={self.capacity} keeps fewer answers than min_answers="
+                             f"{self.min_answers}: the student would never answer")
         if self.max_llm_rows is not None and self.max_llm_rows < self.min_answers:
             raise ValueError(f"advisor.student.max_llm_rows={self.max_llm_rows} is below min_answers="
                              f"{self.min_answers}: the student would answer before it has learned anything")
@@ -153,7 +165,8 @@ def encode(states: Sequence[Any], cfg: StudentConfig, observation: str = "compac
         for kind in ("bz", "nfz", "rz"):
             for r in getattr(s, kind):
                 px, py = _nearest_point(r, x, y)
-                d, dx, dy = add(kind, px, py, ((r[0] + r[2]) / 2, (r[1] + r[3]) / 2), ((r[2] - r[0]) / 2, (r[3] - r[1]) / 2))
+                centre, half = ((r[0] + r[2]) / 2, (r[1] + r[3]) / 2), ((r[2] - r[0]) / 2, (r[3] - r[1]) / 2)
+                d, dx, dy = add(kind, px, py, centre, half)
                 if d < nearest[0]:
                     nearest = (d, kind, dx, dy)
         for g in s.ges:
@@ -182,13 +195,9 @@ def _cell(nearest: tuple[float, str, float, float], target_bearing: float, fast:
 
 def _pad(ents: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
     """``[n, K, N_ENTITY]`` entities and their ``[n, K]`` mask (K: the most any state has, >= 1)."""
-    k = max([1] + [e.shape[0] for e in ents])
-    out = torch.zeros(len(ents), k, N_ENTITY)
-    mask = torch.zeros(len(ents), k, dtype=torch.bool)
-    for i, e in enumerate(ents):
-        out[i, : e.shape[0]] = e
-        mask[i, : e.shape[0]] = True
-    return out, mask
+    lengths = torch.tensor([e.shape[0] for e in ents], dtype=torch.int64)
+    out = nn.utils.rnn.pad_sequence([*ents, torch.zeros(1, N_ENTITY)], batch_first=True)[: len(ents)]
+    return out, torch.arange(out.shape[1]) < lengths[:, None]
 
 
 # ---------------------------------------------------------------------------- the network
@@ -342,6 +351,7 @@ class AmortizedAdvisor:
         self.student = Student(self.cfg, seed=seed)
         self.audit_generator = torch.Generator().manual_seed(int(seed) + 1)
         self.llm_rows = 0  # rows sent to the LLM in the run (max_llm_rows)
+        self.credit = 0.0  # rows the LLM may still answer under max_llm_share
         self.reset_counts()
 
     source = LLM  # result() gives each row's own source: LLM or STUDENT
@@ -374,6 +384,8 @@ class AmortizedAdvisor:
             audit,
         ])  # [len(REASONS), n]
         ask = reasons.any(0)
+        if c.max_llm_share is not None and not warm:
+            ask = self._within_share(reasons, spread)
         if c.max_llm_rows is not None:
             ask &= torch.cumsum(ask.long(), 0) <= max(c.max_llm_rows - self.llm_rows, 0)
         asked = ask.nonzero().squeeze(-1)
@@ -385,6 +397,22 @@ class AmortizedAdvisor:
         # the audited rows the student would have answered: its fidelity where it acts
         audit_only = audit & ~reasons[:3].any(0)
         return _AmortizedHandle(self, handle, asked, audit_only[asked], mean, dcu, ents, cells, warm)
+
+    def _within_share(self, reasons: Tensor, spread: Tensor) -> Tensor:
+        """The rows to ask under ``max_llm_share``: every audit, then unsure and novel rows
+        (novel first, then the least sure) while the credit lasts."""
+        c = self.cfg
+        n = spread.shape[0]
+        self.credit = min(self.credit + c.max_llm_share * n, c.share_burst)
+        audit, want = reasons[3], (reasons[1] | reasons[2]) & ~reasons[3]
+        ask = audit.clone()
+        room = int(math.floor(self.credit - int(audit.sum())))
+        if room > 0 and want.any():
+            key = torch.where(reasons[2], math.inf, spread)  # novel first, then by disagreement
+            order = sorted(want.nonzero().squeeze(-1).tolist(), key=lambda i: (-float(key[i]), i))
+            ask[order[:room]] = True
+        self.credit -= int(ask.sum())
+        return ask
 
     def _merge(self, h: "_AmortizedHandle") -> tuple[Tensor, Tensor, Tensor]:
         n = h.mean.shape[0]
@@ -448,13 +476,14 @@ class AmortizedAdvisor:
     def state_dict(self) -> dict[str, Any]:
         return {"llm": self.llm.state_dict(), "student": self.student.state_dict(),
                 "audit_generator": self.audit_generator.get_state(), "llm_rows": self.llm_rows,
-                "counts": dict(self.counts)}
+                "credit": self.credit, "counts": dict(self.counts)}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.llm.load_state_dict(state["llm"])
         self.student.load_state_dict(state["student"])
         self.audit_generator.set_state(state["audit_generator"])
         self.llm_rows = int(state["llm_rows"])
+        self.credit = float(state["credit"])
         self.counts = dict(state["counts"])
 
     def close(self) -> None:
