@@ -634,9 +634,10 @@ def _train(
         **_prefixed("eval", last_eval),
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in learner.actor.parameters())),
     }
+    cost = policy.cost() if has_advisor else {}  # training's: measured, not replayed; before the advised evaluation
     if has_advisor:
         final.update(_prefixed("override", _deterministic_counts(policy.run_totals())))
-        final.update(_prefixed("cost", policy.cost()))  # what the LLM cost: measured, not replayed
+        final.update(_prefixed("cost", cost))
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(policy, evaluator, run_dir, tr, str(cfg.name)))
     t_base = time.perf_counter()
@@ -653,7 +654,7 @@ def _train(
         "eval_episodes": len(evaluator.scenarios),
         "metrics": {f"{cfg.name} (trained actor)": last_eval, **_advised_row(final, str(cfg.name)), **_baseline_rows(final)},
         "advisor_kind": str(cfg.advisor.kind), "override": policy.run_totals() if has_advisor else None,
-        "cost": {**policy.cost(), "currency": policy.currency()} if has_advisor else None,
+        "cost": {**cost, "currency": policy.currency()} if cost else None,
         "pictures": _pictures(run_dir, counters["frames"]),
     })
     log.info("%s done at %d frames: %s", cfg.name, counters["frames"], {k: round(last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
