@@ -3,14 +3,15 @@ trigger, at the same settings, side by side in one run.
 
     python benchmarks/amortize.py --frames 20000 --batch 16                    (make bench-amortize)
     python benchmarks/amortize.py --methods sac amortized every --seeds 0 1     (make bench-amortize-outcome)
-    python benchmarks/amortize.py --quick                                       (make amortize-quick: 400k frames, B = 64)
+    python benchmarks/amortize.py --quick --checkpoint-every 50000              (make amortize-quick: 400k frames, B = 64)
 
 Trains, in this process and one after another, each seed's methods: ``sac`` (``+exp=sac``),
 ``amortized`` (``+exp=sac_llm advisor.amortize=true``) and ``every`` (``+exp=sac_llm``: the LLM
 at every trigger, the paper's method, no call budget), with the quick profile's world and
 learner (``+profile=quick``: env shaped_geodesic, 0.25 gradient steps a frame) at ``--frames``
 and B = ``--batch``, the env not compiled (the LLM runs' setting in the Makefile), no evaluation
-during training, 32 evaluation episodes at the end. The LLM runs ask one local server started
+during training, 32 evaluation episodes of the actor alone at the end (``--eval-with-advisor``:
+also with its advisor, full episodes, which asks the LLM more than a short run's training does). The LLM runs ask one local server started
 first (its start-up is in no run's time), each with a new, empty cache file.
 
 Per run: the training wall clock (``train_s``: collection, advice, gradient steps; evaluation
@@ -19,8 +20,8 @@ LLM, the student, the fallback; ``advised_all``: no triggered row was left to th
 LLM's share of the triggered rows over the whole run and from ``--late-from`` frames on (the
 issue's bound: 1% from 50k frames); the student's velocity error against the LLM on audited
 rows per logging window; tokens and seconds; the evaluation metrics and advised fraction. The
-runs stay in ``--root`` (the student's checkpoint is what ``make bench-advice`` scores with
-``--advisors student --student RUN_DIR``). Writes ``benchmarks/amortize.json`` with the machine.
+runs stay in ``--root`` (the student's checkpoint is what ``make bench-advice-student`` scores).
+Writes ``benchmarks/amortize.json`` with the machine, one entry per size, methods and seeds.
 """
 
 from __future__ import annotations
@@ -67,7 +68,8 @@ def train(method: str, seed: int, run_dir: Path, args: argparse.Namespace, llm: 
                  f"trainer.total_frames={args.frames}", f"trainer.env_batch_size={args.batch}",
                  f"trainer.replay_capacity={args.frames}", "trainer.compile_env=false", "trainer.eval_every_frames=0",
                  f"trainer.checkpoint_every_frames={args.checkpoint_every}", "trainer.progress_bar=false",
-                 "trainer.baselines=false", "logger.wandb.mode=disabled", *shlex.split(args.extra),
+                 "trainer.baselines=false", "logger.wandb.mode=disabled",
+                 f"trainer.eval_with_advisor={str(args.eval_with_advisor).lower()}", *shlex.split(args.extra),
                  *([*llm, *shlex.split(args.llm_extra)] if method != "sac" else [])]
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
@@ -118,6 +120,8 @@ def main() -> None:
     ap.add_argument("--late-from", type=int, default=None, help="frames after which the LLM's share is counted again "
                                                                 "(default: 50k with --quick, else half the frames)")
     ap.add_argument("--checkpoint-every", type=int, default=0, help="trainer.checkpoint_every_frames (0: at the end)")
+    ap.add_argument("--eval-with-advisor", action="store_true",
+                    help="also fly the LLM runs' actors with their advisor at the end (full episodes: many LLM calls)")
     ap.add_argument("--extra", default="", help="overrides of every run (quoted)")
     ap.add_argument("--llm-extra", default="", help="overrides of the LLM runs (quoted), e.g. 'advisor.student.unsure=0.2'")
     ap.add_argument("--root", default=str(ROOT / "runs" / "bench_amortize"))
@@ -156,13 +160,18 @@ def main() -> None:
     for r in runs:  # the wall clock against plain SAC's on the same seed
         sac = next((x for x in runs if x["method"] == "sac" and x["seed"] == r["seed"]), None)
         r["train_s_over_sac"] = round(r["train_s"] / sac["train_s"], 2) if sac else None
-    out = {
+    entry = {
         "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": describe_machine(), "git": git_info(),
         "command": "python benchmarks/amortize.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "note": args.note, "frames": args.frames, "batch": args.batch, "late_from": args.late_from,
         "llm_server": server_cfg.model_dump(), "server_start_s": round(server_start_s, 1), "runs": runs,
     }
-    dump_json(Path(args.out), out)
+    # one result file: each measurement (size x methods x seeds) under its own key, the latest kept
+    out_path = Path(args.out)
+    out = json.loads(out_path.read_text()) if out_path.is_file() else {"benchmark": "amortize", "measurements": {}}
+    key = f"frames{args.frames}_b{args.batch}_{'+'.join(args.methods)}_seeds{'+'.join(map(str, args.seeds))}"
+    out["measurements"][key] = entry
+    dump_json(out_path, out)
     for r in runs:
         print(f"{r['method']:>9} seed {r['seed']}: {r['train_s']:.0f} s ({r['train_s_over_sac']}x sac), "
               + (f"{r['triggered']} triggered, LLM {r['llm_rows']} ({100 * r['llm_share_of_triggered']:.1f}%), "
