@@ -18,8 +18,8 @@ Per run: the training wall clock (``train_s``: collection, advice, gradient step
 excluded) and its ratio to the seed's ``sac`` run; every triggered row and who answered it (the
 LLM, the student, the fallback; ``advised_all``: no triggered row was left to the actor); the
 LLM's share of the triggered rows over the whole run and from ``--late-from`` frames on (the
-issue's bound: 1% from 50k frames); the student's velocity error against the LLM on audited
-rows per logging window; tokens and seconds; the evaluation metrics and advised fraction. The
+bound to meet at the quick profile's size: 1% from 50k frames); the student's velocity error
+against the LLM on audited rows per logging window; tokens and seconds; the evaluation metrics and advised fraction. The
 runs stay in ``--root`` (the student's checkpoint is what ``make bench-advice-student`` scores).
 Writes ``benchmarks/amortize.json`` with the machine, one entry per size, methods and seeds.
 """
