@@ -92,6 +92,37 @@ bench-advice: $(STAMP)
 	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_json_schema llm_verbose_grammar llm_no_example \
 		llm_no_safety llm_no_compliance llm_no_data llm_no_energy
 
+# The student of a run with advisor.amortize (make bench-amortize keeps its runs) as one more advisor
+# on the same 200 states, compared state by state with the LLM it learned from
+STUDENT_RUN ?= runs/bench_amortize/f20000_b16/amortized_seed0
+.PHONY: bench-advice-student
+bench-advice-student: $(STAMP)
+	$(BIN)/python benchmarks/advice_quality.py --advisors student --student $(STUDENT_RUN)
+
+# The student advisor (advisor.amortize) beside plain SAC at the same settings, side by side (the quick
+# profile's world and learner, AMORTIZE_ARGS' size; about 30 min here) -> benchmarks/amortize.json
+AMORTIZE_ARGS ?= --frames 20000 --batch 16
+.PHONY: bench-amortize bench-amortize-outcome amortize-quick
+bench-amortize: $(STAMP)
+	$(BIN)/python benchmarks/amortize.py --methods sac amortized $(AMORTIZE_ARGS)
+# Does the outcome depend on amortization? The LLM at every trigger (the paper's method) beside the
+# student, 2 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16: about
+# 20% of 12k frames triggered; several hours here) -> benchmarks/amortize.json
+bench-amortize-outcome: $(STAMP)
+	$(BIN)/python benchmarks/amortize.py --methods sac every amortized --seeds 0 1 --frames 12000 --batch 16
+# The quick profile's size, no call budget: 400k frames, B = 64, SAC beside SAC+LLM with the student (a
+# day or more of one core here; resumable only run by run: it stops if a run folder exists)
+amortize-quick: $(STAMP)
+	$(BIN)/python benchmarks/amortize.py --quick --checkpoint-every 50000
+
+# Answered calls/s of any OpenAI-compatible endpoint at 1, 8 and 64 requests in flight (the local server
+# by default; e.g. SERVING_ARGS="--llm openai_compatible --set base_url=http://gpu-box:8000/v1 model=NAME")
+# -> benchmarks/llm_serving.json
+SERVING_ARGS ?=
+.PHONY: bench-llm-serving
+bench-llm-serving: $(STAMP)
+	$(BIN)/python benchmarks/llm_serving.py $(SERVING_ARGS)
+
 # Training frames/s and metrics of +exp=wang beside +exp=ppo at one frame budget -> benchmarks/wang_vs_ppo.json
 .PHONY: bench-wang
 bench-wang: $(STAMP)

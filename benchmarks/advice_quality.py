@@ -27,8 +27,11 @@ makes the gap to ``llm_verbose`` (``llm_verbose_obs``, ``llm_verbose_grammar``,
 example, ``llm_no_example``, ``llm_reasoning_first``: the Reasoning before the action), the
 paper's ablations (``llm_no_safety``/``llm_no_compliance``/``llm_no_data``/``llm_no_energy``);
 ``LLM_VARIANTS`` holds each one's settings. Then ``heuristic``, ``hover``, ``random`` (uniform
-in the speed disc), ``actor`` (an exported actor, ``--actor FILE.pt2``) and ``endpoint`` (any
-OpenAI-compatible server, ``--endpoint PRESET_OR_YAML``). LLM advisors run with the advice
+in the speed disc), ``actor`` (an exported actor, ``--actor FILE.pt2``), ``endpoint`` (any
+OpenAI-compatible server, ``--endpoint PRESET_OR_YAML``) and ``student`` (the student advisor of a
+run with ``advisor.amortize``, taken from its checkpoint, ``--student RUN_DIR``: its own answer
+on every state, never the LLM's; compared state by state with ``llm`` below, with the mean gap
+between the two answers in m/s). LLM advisors run with the advice
 cache off. Every state is stepped in one batch with the whole set (the states beyond ``--n``
 hover), so a state meets the same draws in every run. Results of separate runs, also of two
 at once, merge into ``benchmarks/advice_quality.json`` (per advisor) and the table
@@ -88,7 +91,7 @@ LLM_VARIANTS = {"llm": {},  # the default (uavlae/conf/llm/local.yaml)
                 "llm_no_example": {"example": "none"},
                 "llm_reasoning_first": {**PAPER, "reasoning_first": True},
                 **{f"llm_{a}": {**PAPER, "prompt_ablation": a} for a in ("no_safety", "no_compliance", "no_data", "no_energy")}}
-ADVISORS = (*LLM_VARIANTS, "heuristic", "hover", "random", "actor", "endpoint")
+ADVISORS = (*LLM_VARIANTS, "heuristic", "hover", "random", "actor", "endpoint", "student")
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
@@ -228,6 +231,34 @@ def llm_answers(state: TensorDict, env_cfg: Any, cfg: Any, log_every: int = 25) 
             "cached_prompt_tokens": cached, "completion_tokens": ctok, "calls": calls, "rejected": dict(rejected)}
 
 
+def student_answers(state: TensorDict, env_cfg: Any, path: str) -> dict[str, Any]:
+    """The student of a run with ``advisor.amortize`` (its last checkpoint) on every state."""
+    from uavlae.checkpoint import load_checkpoint
+    from uavlae.policies.student import Student, encode, make_student_config
+
+    ckpt, file = load_checkpoint(path)
+    adv = (ckpt.get("collector") or {}).get("policy_extra", {}).get("advisor")
+    if not isinstance(adv, dict) or "student" not in adv:
+        raise SystemExit(f"{file} holds no student: train with +exp=sac_llm advisor.amortize=true")
+    cfg = make_student_config(ckpt["config"]["advisor"]["student"])
+    student = Student(cfg)
+    student.load_state_dict(adv["student"])
+    limits = WorldLimits.from_env_config(env_cfg)
+    states = advisor_states_from_tensordict(TensorDict({"state": state}, batch_size=state.batch_size),
+                                            list(range(state.batch_size[0])), limits)
+    n = len(states)
+    t0 = time.perf_counter()
+    dcu, ents, _ = encode(states, cfg, ckpt["config"]["llm"]["observation"])
+    mean, spread = student.predict(dcu, ents)
+    per = (time.perf_counter() - t0) / max(n, 1)
+    about = {"checkpoint": str(file), "frames": int(ckpt["counters"]["frames"]), "answers_learned": student.answers,
+             "updates": student.updates, "llm_rows": int(adv["llm_rows"]), "unsure": cfg.unsure,
+             "spread_mean": float(spread.mean()), "spread_above_unsure": float((spread > cfg.unsure).float().mean()),
+             # per state: would the student have answered it itself in a run (members within `unsure`)?
+             "sure": (spread <= cfg.unsure).tolist()}
+    return {"action": mean.clamp(-1, 1), "valid": [True] * n, "latency": [per] * n, "student": about}
+
+
 def timed(fn: Callable[[], torch.Tensor], n: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     action = fn()
@@ -256,6 +287,10 @@ def answers(name: str, state: TensorDict, env: UAVEnv, args: argparse.Namespace)
             r, th = torch.rand(n, generator=g).sqrt(), torch.rand(n, generator=g) * 2 * math.pi
             return torch.stack([r * th.cos(), r * th.sin()], -1)
         return timed(draw, n)
+    if name == "student":
+        if not args.student:
+            raise SystemExit("advisor 'student' needs --student RUN_DIR (a run trained with advisor.amortize=true)")
+        return student_answers(state, env_cfg, args.student)
     if name == "actor":
         if not args.actor:
             raise SystemExit("advisor 'actor' needs --actor FILE.pt2 (written by python -m uavlae.export)")
@@ -344,10 +379,11 @@ def table(results: dict[str, Any]) -> str:
         lines += [f"## Each LLM prompt against {what} (`{ref_name}`), state by state", "",
                   f"Mean difference (other - {ref_name}) over the states both answered, with a 95% bootstrap "
                   "interval; a cheaper prompt must not be worse: violations not higher, progress not lower.", "",
-                  "| advisor | states | Δ viol. H slots | Δ progress H (m) | answers that differ |", "|---|---|---|---|---|"]
+                  "| advisor | states | Δ viol. H slots | Δ progress H (m) | answers that differ | mean gap (m/s) |",
+                  "|---|---|---|---|---|---|"]
         ref = adv[ref_name]
         for name, a in adv.items():
-            if name == ref_name or not name.startswith("llm"):
+            if name == ref_name or not (name.startswith("llm") or name == "student"):
                 continue
             n = min(a["n_states"], ref["n_states"])
             cells = []
@@ -355,7 +391,18 @@ def table(results: dict[str, Any]) -> str:
                 m, lo, hi = paired(ref["per_state"][key][:n], a["per_state"][key][:n])
                 cells.append(f"{m:+.3f} [{lo:+.3f}, {hi:+.3f}]")
             differ = sum(x != y for x, y in zip(ref["actions"][:n], a["actions"][:n]))
-            lines.append(f"| {name} | {n} | " + " | ".join(cells) + f" | {differ} |")
+            gap = sum(math.dist(x, y) for x, y in zip(ref["actions"][:n], a["actions"][:n])) / n * results["v_max"]
+            lines.append(f"| {name} | {n} | " + " | ".join(cells) + f" | {differ} | {gap:.2f} |")
+            sure = (a.get("student") or {}).get("sure")
+            if sure and any(sure[:n]):  # where the student would have answered in a run, not asked the LLM
+                idx = [i for i in range(n) if sure[i]]
+                cells = []
+                for key in ("any_violation_H", "progress_H_m"):
+                    m, lo, hi = paired([ref["per_state"][key][i] for i in idx], [a["per_state"][key][i] for i in idx])
+                    cells.append(f"{m:+.3f} [{lo:+.3f}, {hi:+.3f}]")
+                gap = sum(math.dist(ref["actions"][i], a["actions"][i]) for i in idx) / len(idx) * results["v_max"]
+                lines.append(f"| {name} where sure | {len(idx)} | " + " | ".join(cells)
+                             + f" | {sum(ref['actions'][i] != a['actions'][i] for i in idx)} | {gap:.2f} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -375,6 +422,7 @@ def main() -> None:
     ap.add_argument("--llm", default="local", help="LLM preset or YAML for the llm* advisors")
     ap.add_argument("--endpoint", default=None, help="preset or YAML of an OpenAI-compatible endpoint")
     ap.add_argument("--actor", default=None, help="an actor exported by python -m uavlae.export")
+    ap.add_argument("--student", default=None, help="a run (or checkpoint) trained with advisor.amortize=true")
     ap.add_argument("--rescore", action="store_true",
                     help="score every stored advisor again from its stored answers (no advisor is asked)")
     ap.add_argument("--out", default=str(OUT))
@@ -403,7 +451,7 @@ def main() -> None:
     results.update({"benchmark": "advice_quality", "hold": args.hold, "seed": args.seed,
                     "states": {"path": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path),
                                "n": len(meta["kind"]), "kinds": kinds, "sha256_16": digest, "d_th": meta["d_th"]},
-                    "machine": describe_machine()})
+                    "machine": describe_machine(), "v_max": make_env_config(None).motion.v_max})
     results.setdefault("advisors", {})
     if args.rescore:
         for name, entry in results["advisors"].items():
@@ -430,6 +478,8 @@ def main() -> None:
                  "command": portable("python benchmarks/advice_quality.py " + " ".join(sys.argv[1:]), ROOT),
                  "summary": summarise(per_state, list(range(n))), "per_state": per_state,
                  "llm_overrides": LLM_VARIANTS.get(name), "rejected": ans.get("rejected"), "actions": actions}
+        if "student" in ans:
+            entry["student"] = ans["student"]
         entry["summary"]["top_answer"] = top_answer_share(actions)
         results["advisors"][name] = entry
         # after each advisor (a long run keeps what it finished), over what another run beside

@@ -218,7 +218,7 @@ def test_llm_override_with_the_real_local_server(llm_server, tmp_path):
                    start=(12.5, 487.5))
     env = UAVEnv(batch_size=[2], seed=0, scenarios=[near, far])
     cfg = make_llm_config("local", cache_path=str(tmp_path / "c.sqlite"), max_tokens=96,
-                          reasoning_max_chars=40, fallback="policy")
+                          reasoning_max_chars=40)
     llm = LLMAdvisor(cfg, base_url=llm_server.base_url)
     pol = OverridePolicy(det_actor(), LLMAdvisorAdapter(llm, env.cfg, timeout=240), mode="proximity",
                          d_th=15.0, fallback=None)

@@ -110,7 +110,7 @@ def test_response_format_modes(mode, key):
 def test_timeout_is_retried_then_typed():
     h = Script(httpx.ReadTimeout("slow"))
     (f,), adv = run(h)
-    assert isinstance(f, AdviceFailure) and f.kind is FailureKind.TIMEOUT and f.fallback == "end_episode"
+    assert isinstance(f, AdviceFailure) and f.kind is FailureKind.TIMEOUT
     assert len(h.requests) == 3 and adv.stats.snapshot()["retries"] == 2
     assert adv.stats.snapshot()["failures/timeout"] == 1
 
@@ -152,10 +152,10 @@ def test_connection_refused():
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
     s.close()  # nothing listens there now
-    adv = LLMAdvisor(cfg(base_url=f"http://127.0.0.1:{port}/v1", fallback="heuristic"))
+    adv = LLMAdvisor(cfg(base_url=f"http://127.0.0.1:{port}/v1"))
     (f,) = adv.advise_sync(STATES[:1], timeout=30)
     adv.close()
-    assert f.kind is FailureKind.CONNECTION and f.fallback == "heuristic" and KEY not in f.detail
+    assert f.kind is FailureKind.CONNECTION and KEY not in f.detail
 
 
 def test_500_is_retried_and_recovers():
@@ -496,3 +496,244 @@ def test_a_training_run_with_a_rejected_key_stops_at_its_first_call(tmp_path, mo
     msg = str(info.value)
     assert url in msg and "UAVLAE_TEST_KEY" in msg and KEY not in msg
     assert 1 <= len(hits) <= 2  # the first request (two rows in flight at most), then the stop
+
+
+# -- an endpoint that is down stops the run ----------------------------------------------------
+class Endpoint:
+    """A real local endpoint in a fault state: ``refused`` (a free port nothing listens on),
+    ``error500`` (an HTTP server answering 500 to every request) or ``hang`` (a socket that
+    accepts connections and never answers). ``hits`` counts requests (500) or connections (hang)."""
+
+    def __init__(self, kind: str):
+        import http.server
+
+        self.kind, self.hits, self._stop = kind, 0, threading.Event()
+        self._closers: list = []
+        if kind == "refused":
+            s = socket.socket()
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+            s.close()
+        elif kind == "error500":
+            outer = self
+
+            class Fail(http.server.BaseHTTPRequestHandler):
+                def do_POST(self):  # noqa: N802
+                    outer.hits += 1
+                    self.rfile.read(int(self.headers.get("content-length", 0)))
+                    self.send_response(500)
+                    self.send_header("content-length", "4")
+                    self.end_headers()
+                    self.wfile.write(b"boom")
+
+                def do_GET(self):  # noqa: N802  (/props: no slots to report)
+                    self.send_response(404)
+                    self.send_header("content-length", "0")
+                    self.end_headers()
+
+                def log_message(self, *args):
+                    pass
+
+            srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Fail)
+            self.port = srv.server_address[1]
+            threading.Thread(target=srv.serve_forever, daemon=True).start()
+            self._closers += [srv.shutdown, srv.server_close]
+        else:
+            srv = socket.socket()
+            srv.bind(("127.0.0.1", 0))
+            srv.listen(64)
+            srv.settimeout(0.05)
+            self.port = srv.getsockname()[1]
+            conns: list = []
+
+            def accept():
+                while not self._stop.is_set():
+                    try:
+                        conns.append(srv.accept()[0])
+                        self.hits += 1
+                    except OSError:
+                        pass
+
+            t = threading.Thread(target=accept, daemon=True)
+            t.start()
+            self._closers += [self._stop.set, lambda: t.join(2), lambda: [c.close() for c in conns], srv.close]
+        self.url = f"http://127.0.0.1:{self.port}/v1"
+
+    def close(self):
+        for c in self._closers:
+            c()
+
+
+@pytest.fixture(params=["refused", "error500", "hang"])
+def down(request):
+    ep = Endpoint(request.param)
+    yield ep
+    ep.close()
+
+
+# what a stop may take at most: three rows, the deadline each (one request in flight at a time)
+DOWN = dict(max_failed_rows=3, row_deadline_s=1.0, timeout_s=60.0, max_retries=3, max_concurrency=1)
+
+
+def test_an_endpoint_that_is_down_stops_after_three_rows_with_one_message(down, caplog):
+    """Eight rows at once, one request in flight: three rows fail (refused at once; 500 after its
+    3 retries, 4 requests a row; hung until the 1 s row deadline, well before the 60 s request
+    timeout), then the stop: the rows still queued are not sent, and the one EndpointError
+    names the endpoint and what failed. A later call stops without asking."""
+    adv = LLMAdvisor(cfg(base_url=down.url, **DOWN))
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(EndpointError) as info:
+            adv.advise_sync(STATES, timeout=50)
+        took = time.monotonic() - t0
+        hits = down.hits
+        with pytest.raises(EndpointError):
+            adv.advise_sync(STATES[:1], timeout=50)
+        assert down.hits == hits
+    finally:
+        adv.close()
+    msg = str(info.value)
+    what = {"refused": "could not connect x3", "error500": "server error (5xx) x3", "hang": "no answer in time x3"}
+    assert f"{down.url}/chat/completions" in msg and "3 rows in a row unanswered" in msg and what[down.kind] in msg
+    assert "llm.max_failed_rows=3" in msg and KEY not in msg
+    if down.kind == "error500":  # the three failed rows' 4 requests each; while one backs off, a
+        assert 3 * 4 <= hits <= 8 * 4  # queued row may send its own (the slot is free meanwhile)
+    else:
+        assert hits == {"refused": 0, "hang": 3}[down.kind]
+    if down.kind == "hang":
+        assert 3.0 <= took < 3.0 + 2.0  # three rows, each ended by its 1 s deadline
+    else:
+        assert took < 3.0  # retries back off 10-50 ms each
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]  # the error is the message
+
+
+@pytest.mark.parametrize("kind", ["refused", "error500", "hang"])
+def test_a_training_run_against_an_endpoint_that_is_down_stops_with_one_message(tmp_path, kind):
+    """``python -m uavlae.train +exp=sac_llm`` (two rows, every one triggered) against each fault,
+    as a process: it exits with an error within a bound set by the deadline (two steps: 2 + 1
+    rows, 1 s each when the server hangs), and its one message names the endpoint and what failed."""
+    ep = Endpoint(kind)
+    root = Path(__file__).resolve().parents[1]
+    args = ["+exp=sac_llm", f"run_dir={tmp_path / 'run'}", "trainer.total_frames=64", "trainer.env_batch_size=2",
+            "trainer.frames_per_batch=8", "trainer.init_random_frames=0", "trainer.batch_size=2",
+            "trainer.replay_capacity=64", "trainer.eval_episodes=1", "trainer.eval_max_steps=3",
+            "trainer.eval_every_frames=0", "trainer.checkpoint_every_frames=0", "trainer.progress_bar=false",
+            "trainer.baselines=false", "logger.wandb.mode=disabled", "advisor.d_th=1000.0",
+            "llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
+            "llm.cache_mode=off", "llm.row_deadline_s=1.0", "llm.max_retries=2", "llm.backoff_base_s=0.01",
+            "llm.backoff_max_s=0.05", "llm.max_failed_rows=3", "llm.max_concurrency=1"]
+    try:
+        t0 = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "uavlae.train", *args], cwd=root, capture_output=True,
+                              text=True, timeout=120, env={**__import__("os").environ, "UAVLAE_TEST_KEY": KEY})
+        took = time.monotonic() - t0
+    finally:
+        ep.close()
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0, out[-2000:]
+    msg = [ln for ln in out.splitlines() if "rows in a row unanswered" in ln]
+    assert len(msg) == 1 and f"{ep.url}/chat/completions" in msg[0] and "$UAVLAE_TEST_KEY" in msg[0], out[-3000:]
+    assert KEY not in out
+    assert not (tmp_path / "run" / "final_metrics.json").exists()  # it did not go on as plain SAC
+    # start-up (imports, env, networks) takes most of it; the LLM's part is 3 s at most when it hangs
+    assert took < 60
+
+
+def test_a_row_deadline_bounds_retries_whatever_their_number(caplog):
+    """A server answering 500 with 100 retries allowed: the row still ends at its 1 s deadline
+    (the next backoff would pass it), as a server error."""
+    ep = Endpoint("error500")
+    adv = LLMAdvisor(cfg(base_url=ep.url, max_retries=100, backoff_base_s=0.2, backoff_max_s=0.2,
+                         row_deadline_s=1.0, max_failed_rows=None))
+    try:
+        t0 = time.monotonic()
+        (f,) = adv.advise_sync(STATES[:1], timeout=50)
+        took = time.monotonic() - t0
+    finally:
+        adv.close()
+        ep.close()
+    assert f.kind is FailureKind.SERVER_ERROR and took < 1.3
+    # backoffs of 0.1-0.2 s (jittered) fit 5 to 10 requests into the second
+    assert 5 <= ep.hits <= 11
+
+
+def test_time_queued_behind_other_rows_is_not_a_rows_deadline():
+    """Six rows, one in flight, each answered in 0.3 s: 1.8 s in all against a 0.5 s row
+    deadline, and every row is answered (its clock starts when its request is sent)."""
+    async def slow(request):
+        await asyncio.sleep(0.3)
+        return httpx.Response(200, json=completion(json.dumps(GOOD)))
+
+    res, adv = run(slow, states=STATES[:6], row_deadline_s=0.5, max_concurrency=1)
+    assert all(r.ok for r in res) and adv.stats.snapshot()["calls"] == 6
+
+
+def test_rows_the_endpoint_answered_badly_never_stop_the_run_and_an_answer_resets_the_count():
+    """max_failed_rows counts rows the endpoint left unanswered, in a row: invalid answers show it
+    is up (the extractor's failures are the fallback's business), and one valid answer starts
+    the count again."""
+    bad = '{"vx": 99, "vy": 0, "Confidence": 1, "Reasoning": ""}'
+    res, adv = run(Script(bad), states=STATES[:5], max_attempts=2, max_failed_rows=1)
+    assert [r.ok for r in res] == [False] * 5
+    refused = httpx.ConnectError("refused")
+    # with no retries: two refused rows, one answered, two refused again: never three in a row
+    h = Script(refused, refused, GOOD, refused, refused, GOOD)
+    adv = LLMAdvisor(cfg(max_retries=0, max_failed_rows=3), transport=httpx.MockTransport(h))
+    try:
+        got = [adv.advise_sync([s], timeout=50)[0].ok for s in STATES[:6]]
+    finally:
+        adv.close()
+    assert got == [False, False, True, False, False, True]
+    h = Script(refused)
+    adv = LLMAdvisor(cfg(max_retries=0, max_failed_rows=3), transport=httpx.MockTransport(h))
+    try:
+        assert [adv.advise_sync([s], timeout=50)[0].ok for s in STATES[:2]] == [False, False]
+        with pytest.raises(EndpointError, match="3 rows in a row"):
+            adv.advise_sync(STATES[2:3], timeout=50)
+    finally:
+        adv.close()
+
+
+# -- a key in the wrong place ------------------------------------------------------------------
+LOOKS_LIKE_A_KEY = ["sk-test-DO-NOT-LEAK-4242", "hf_AbCdEfGhIjKlMnOpQrStUvWx12", "0123456789abcdef0123456789abcdef"]
+
+
+@pytest.mark.parametrize("value", LOOKS_LIKE_A_KEY)
+def test_an_api_key_env_that_looks_like_a_key_is_refused_without_echoing_it(value):
+    from uavlae.llm.config import LLMConfig, looks_like_variable_name
+
+    assert not looks_like_variable_name(value)
+    for make in (lambda: make_llm_config("deepseek", api_key_env=value),
+                 lambda: LLMConfig(base_url="http://h/v1", api_key_env=value)):
+        with pytest.raises(Exception) as info:
+            make()
+        assert value not in str(info.value) and "NAME of an environment variable" in str(info.value)
+        assert f"({len(value)} characters)" in str(info.value)
+    for name in ("DEEPSEEK_API_KEY", "OPENAI_API_KEY", "UAVLAE_TEST_KEY", "MY_KEY_2", "azure_openai_key"):
+        assert make_llm_config("deepseek", api_key_env=name).api_key_env == name
+
+
+def test_a_key_given_as_a_setting_is_refused_without_printing_it():
+    with pytest.raises(ValueError) as info:
+        make_llm_config("local", api_key=KEY)
+    assert KEY not in str(info.value) and "llm.api_key: the API key is never a setting" in str(info.value)
+    with pytest.raises(ValueError) as info:  # any other unknown key: named, its value not quoted
+        make_llm_config("local", api_kye=KEY)
+    assert KEY not in str(info.value) and "llm.api_kye" in str(info.value)
+
+
+@pytest.mark.parametrize("arg", [f"+llm.api_key={KEY}", f"llm.api_key_env={KEY}", f"++llm.token={KEY}"])
+def test_the_command_line_with_a_key_is_refused_before_anything_is_written(tmp_path, arg):
+    """Refused before Hydra copies the command line into the run folder: no folder, and the
+    value in no output."""
+    root = Path(__file__).resolve().parents[1]
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "uavlae.train", "+exp=sac_llm", f"run_dir={run_dir}", arg],
+                          cwd=root, capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "refused: " in proc.stderr
+    assert KEY not in proc.stdout + proc.stderr and not run_dir.exists()
+
+
+def test_a_removed_setting_names_its_heir():
+    with pytest.raises(ValueError, match="llm.fallback was removed: advisor.fallback is the one fallback setting"):
+        make_llm_config("local", fallback="policy")

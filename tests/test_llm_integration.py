@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
+from pathlib import Path
 
 import httpx
 import pytest
@@ -98,6 +100,12 @@ def test_slot_affinity_keeps_each_episodes_prefix_cached():
                     (r,) = adv.advise_sync([s], timeout=240)
                     assert isinstance(r, Advice), r
             reused[affinity] = [c.timings["cache_n"] for c in calls]
+        # the copy of the system prompt lies inside the server's own slot folder ...
+        saved = Path(srv.slots_dir) / f"uavlae-prefix-{os.getpid()}.bin"
+        assert saved.is_file() and saved.stat().st_size > 0
+    # ... and goes with it: nothing is left in the temp folder
+    assert not Path(srv.slots_dir).exists()
+    assert not list(Path(tempfile.gettempdir()).glob(f"*uavlae-prefix-{os.getpid()}.bin"))
     on, off = reused[True], reused[False]
     assert on[1] >= 400  # the ~480-token system prompt, restored into slot 1, not evaluated
     assert on[2] >= on[1] + 100  # A's zones and GEs (11+ GEs of 8+ tokens each) came back too

@@ -239,7 +239,7 @@ class FakeLLM:
     def __init__(self, answers):
         from uavlae.llm import make_llm_config
 
-        self.cfg = make_llm_config("local", cache_mode="off", fallback="heuristic")
+        self.cfg = make_llm_config("local", cache_mode="off")
         self.answers = answers
         self.got = []
 
@@ -260,7 +260,7 @@ def test_llm_adapter_converts_velocity_and_failures():
 
     env, td = _env_rows()
     fake = FakeLLM([Advice(vx=5.0, vy=-10.0, confidence=0.9, reasoning="r"),
-                    AdviceFailure(kind=FailureKind.OVER_SPEED, detail="x", attempts=10, fallback="heuristic")])
+                    AdviceFailure(kind=FailureKind.OVER_SPEED, detail="x", attempts=10)])
     ad = LLMAdvisorAdapter(fake, env.cfg)
     actions, ok = ad.advise(td[torch.tensor([0, 2])], torch.tensor([0, 2]))
     v_max = env.cfg.motion.v_max
@@ -270,7 +270,7 @@ def test_llm_adapter_converts_velocity_and_failures():
     pos = td["state", "position"]
     assert [s.position for s in states] == [tuple(pos[0].tolist()), tuple(pos[2].tolist())]
     assert states[0].limits.v_max == v_max
-    assert ad.fallback == "heuristic"
+    assert not hasattr(ad, "fallback")  # one fallback setting: the override's (advisor.fallback)
 
 
 def test_pickled_policy_carries_no_http_client(tmp_path):
@@ -282,7 +282,7 @@ def test_pickled_policy_carries_no_http_client(tmp_path):
     llm._client = object()  # as if a client were open
     blob = pickle.dumps(pol)
     back = pickle.loads(blob)
-    assert back.advisor.llm._client is None and back.fallback == "end_episode"
+    assert back.advisor.llm._client is None and back.fallback == "policy"  # the override's own default
     assert back.advisor.llm.base_url_or_none == "http://127.0.0.1:9/v1"
     llm._client = None
     llm.close()

@@ -402,5 +402,8 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    from uavlae.llm.config import refuse_secret_overrides
+
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down
     sys.argv = without_hydra_output(sys.argv)
     main()

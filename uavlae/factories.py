@@ -26,7 +26,8 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
-from uavlae.validation import StrictModel
+from uavlae.policies.student import StudentConfig
+from uavlae.validation import StrictModel, error_lines
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 # The configs ship inside the package, so an installed uavlae composes the same runs as a checkout.
@@ -51,15 +52,10 @@ def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
     try:
         return model.model_validate(_container(cfg))
     except ValidationError as e:
-        lines = [
-            f"{group}.{'.'.join(str(p) for p in err['loc'])}: {err['msg']} (got {err.get('input')!r})"
-            for err in e.errors()
-        ]
-        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(lines)) from None
+        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
 
 
 # ---------------------------------------------------------------------------- configs
-
 
 class TrainerConfig(StrictModel):
     """``conf/trainer``: the loop's numbers."""
@@ -122,11 +118,18 @@ class AdvisorConfig(StrictModel):
     max_calls: int | None = Field(None, ge=0)  # rows asked of the advisor in the run; None: no budget
     phase_out_frames: int | None = Field(None, ge=1)  # anneal d_th / fp to 0 over these frames; None: never
     agree_tol: float = Field(0.1, gt=0)  # action units: the actor agrees with executed advice within this
+    # beyond the paper: a student network trained on the LLM's answers answers where it is sure,
+    # the LLM where it is not (uavlae.policies.student)
+    amortize: bool = False
+    student: StudentConfig = StudentConfig()
 
     @model_validator(mode="after")
     def _consistent(self) -> "AdvisorConfig":
         if (self.kind == "none") != (self.mode == "never"):
             raise ValueError(f"advisor.kind={self.kind!r} and advisor.mode={self.mode!r}: kind none goes with mode never")
+        if self.amortize and self.kind != "llm":
+            raise ValueError(f"advisor.amortize learns from an LLM's answers; advisor.kind={self.kind!r} has none "
+                             "(use it with +exp=sac_llm or sac_llm_fp)")
         if self.phase_out_frames is not None and self.mode not in ("proximity", "fixed_prob"):
             raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); "
                              f"advisor.mode={self.mode!r} has neither")
@@ -230,7 +233,9 @@ def validate_config(cfg: DictConfig) -> None:
                 f"advisor.kind={adv.kind!r} with algo {name!r}: the override stores executed actions for an "
                 "off-policy learner; on-policy PPO/CPO would need the advisor's log-probabilities"
             )
-    if adv.kind == "llm" or run.controller == "llm":
+    if run.controller == "llm" and adv.amortize:
+        raise ValueError("advisor.amortize with controller=llm: the LLM alone is the LLM at every step, not a student")
+    if cfg.get("llm") is not None:  # always: a key given in its place is refused before anything is written
         from uavlae.llm import make_llm_config
 
         make_llm_config(cfg.llm)
@@ -331,6 +336,10 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
         advisor = ScriptedAdvisor(adv.kind, seed=seed + 7919)  # its own stream, apart from the trigger's
     else:
         advisor = LLMAdvisorAdapter(make_llm_advisor(cfg), env_cfg)
+        if adv.amortize:
+            from uavlae.policies.student import AmortizedAdvisor
+
+            advisor = AmortizedAdvisor(advisor, adv.student, seed=seed + 7907)  # apart from the trigger's stream
     return OverridePolicy(
         actor,
         advisor,

@@ -46,6 +46,9 @@ RUNTIME_KEYS = ("threads", "device", "trainer.progress_bar", "trainer.progress_e
 BUDGET_KEYS = ("trainer.total_frames", "trainer.total_episodes", "trainer.llm_call_budget", "trainer.eval_shard",
                "trainer.eval_shards")
 RESUMABLE_KEYS = RUNTIME_KEYS + BUDGET_KEYS
+# settings removed from the code, which a run saved before holds: they had no effect (llm.fallback
+# was logged, never applied: advisor.fallback acted), so a recorded config is read without them
+REMOVED_KEYS = ("llm.fallback",)
 # what says how to find a run, not what it is
 BOOKKEEPING_KEYS = ("resume", "experiment.reuse", "run_dir", "checkpoint", "out")
 # what a rerun after a kill before the first checkpoint removes: everything the run wrote
@@ -80,7 +83,8 @@ def config_differences(want: Any, have: Any) -> tuple[list[str], list[str]]:
     dotted keys ``(changed, added)``. ``added`` are the keys ``have`` lacks: settings added to the
     code after it was saved, whose defaults keep the earlier behaviour, so no difference. A key
     only ``have`` holds (one since removed) counts as changed."""
-    w, h = flatten_keys(want), flatten_keys(have)
+    w = flatten_keys(want)
+    h = {k: v for k, v in flatten_keys(have).items() if k not in REMOVED_KEYS}
     added = sorted(set(w) - set(h))
     changed = sorted(k for k in set(w) | set(h) if k not in added and w.get(k) != h.get(k))
     return changed, added
@@ -176,7 +180,8 @@ def _container(cfg: Any) -> dict[str, Any]:
 def _conflicts(want: Mapping[str, Any], have: Mapping[str, Any], keys: Sequence[str] | None) -> list[str]:
     """``key: recorded -> asked`` for each key of ``keys`` (None: every key) where the two
     configs differ, leaving out what may differ on resume and the bookkeeping."""
-    w, h = flatten_keys(dict(want)), flatten_keys(dict(have))
+    w = flatten_keys(dict(want))
+    h = {k: v for k, v in flatten_keys(dict(have)).items() if k not in REMOVED_KEYS}
     candidates = sorted(set(w) | set(h)) if keys is None else sorted(keys)
     out = []
     for k in candidates:
@@ -187,9 +192,20 @@ def _conflicts(want: Mapping[str, Any], have: Mapping[str, Any], keys: Sequence[
     return out
 
 
+def _without_removed(cfg: dict[str, Any]) -> dict[str, Any]:
+    out = OmegaConf.create(cfg)
+    for key in REMOVED_KEYS:
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(out, parent) if parent else out
+        if isinstance(node, DictConfig) and leaf in node:
+            node.pop(leaf)
+    return OmegaConf.to_container(out)  # type: ignore[return-value]
+
+
 def _carry_over(recorded: dict[str, Any], want: dict[str, Any], budget_keys: Sequence[str]) -> dict[str, Any]:
-    """The recorded config with the runtime settings of ``want`` and the budgets it asks for."""
-    out = OmegaConf.create(recorded)
+    """The recorded config (less :data:`REMOVED_KEYS`) with the runtime settings of ``want`` and
+    the budgets it asks for."""
+    out = OmegaConf.create(_without_removed(recorded))
     flat = flatten_keys(want)
     for k in (*RUNTIME_KEYS, *budget_keys):
         if k in flat:

@@ -93,6 +93,7 @@ def format_summary(summary: dict[str, Any]) -> str:
                 + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
                    if summary.get("overlap_s") else "") + "."
             )
+    lines.extend(_cost_lines(summary.get("cost"), summary.get("override")))
     la = summary.get("llm_alone")
     if la:
         c = la["cost"]
@@ -135,3 +136,23 @@ def baseline_rows(final: dict[str, Any]) -> dict[str, dict[str, float]]:
 
 def full_run_frames() -> int:
     return int(OmegaConf.load(CONF_DIR / "trainer" / "default.yaml").total_frames)
+
+
+def _cost_lines(cost: dict[str, Any] | None, ov: dict[str, Any] | None) -> list[str]:
+    """What the advice cost: rows by who answered, tokens, time, money; the student's share."""
+    if not cost or cost.get("triggered") is None:
+        return []
+    money = cost.get("money", float("nan"))
+    lines = [
+        f"  Cost: {int(cost['triggered']):,} triggered rows; executed from the LLM's answer {int(cost['rows_llm']):,}, "
+        f"the student's {int(cost['rows_student']):,}, a held answer {int(cost['rows_held']):,}, the fallback "
+        f"{int(cost['rows_fallback']):,}; {int(cost['tokens_in']):,} tokens in ({int(cost['tokens_in_cached']):,} cached), "
+        f"{int(cost['tokens_out']):,} out; the LLM answered for {cost['llm_s']:.0f} s, the loop waited {cost['wait_s']:.0f} s"
+        + (f"; {money:.4g} {cost.get('currency')}" if money == money else "; no price in the llm config") + "."]
+    if ov and ov.get("advisor/student/rows"):
+        lines.append(
+            f"  Student: the LLM was asked for {int(ov['advisor/student/llm_rows']):,} of {int(ov['advisor/student/rows']):,} "
+            f"rows (warm-up {int(ov['advisor/student/asked_warmup']):,}, unsure {int(ov['advisor/student/asked_unsure']):,}, "
+            f"novel {int(ov['advisor/student/asked_novel']):,}, audit {int(ov['advisor/student/asked_audit']):,}); on the "
+            f"audited rows its velocity lay {ov.get('advisor/student/audit_err_mps', float('nan')):.2f} m/s from the LLM's.")
+    return lines

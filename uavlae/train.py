@@ -357,8 +357,10 @@ def finish(t: Training) -> dict[str, Any]:
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in t.learner.actor.parameters())),
     }
     advised = cfg.advisor.kind != "none"
+    cost = t.policy.cost() if advised else {}  # training's: measured, not replayed; before the advised evaluation
     if advised:
         final.update(_prefixed("override", _deterministic_counts(t.policy.run_totals())))
+        final.update(_prefixed("cost", cost))
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(t))
     t_base = time.perf_counter()
@@ -373,6 +375,7 @@ def finish(t: Training) -> dict[str, Any]:
         "baselines_s": time.perf_counter() - t_base, "eval_episodes": len(t.evaluation.scenarios),
         "metrics": {f"{cfg.name} (trained actor)": t.last_eval, **advised_row(final, str(cfg.name)), **baseline_rows(final)},
         "advisor_kind": str(cfg.advisor.kind), "override": t.policy.run_totals() if advised else None,
+        "cost": {**cost, "currency": t.policy.currency()} if cost else None,
         "pictures": pictures(t.run_dir, t.frames),
     })
     log.info("%s done at %d frames: %s", cfg.name, t.frames,
@@ -383,7 +386,8 @@ def finish(t: Training) -> dict[str, Any]:
 def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
     """The override's run counters that a replay reproduces: no timings, none of the
     advisor's transport counts (a replayed answer is a cache hit, a live one a call)."""
-    return {k: v for k, v in totals.items() if not k.startswith("advisor/") and not k.endswith("_s")}
+    return {k: v for k, v in totals.items()  # the student learns from the answers alone: replayed exactly
+            if (not k.startswith("advisor/") or k.startswith("advisor/student/")) and not k.endswith("_s")}
 
 
 def _advised_evaluation(t: Training) -> dict[str, float]:
@@ -595,4 +599,7 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    from uavlae.llm.config import refuse_secret_overrides
+
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line into the run folder
     main()

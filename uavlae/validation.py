@@ -8,6 +8,8 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 M = TypeVar("M", bound=BaseModel)
+# fields whose value an error never quotes: a key typed in the wrong place must not reach a log
+UNQUOTED_FIELDS = ("api_key_env", "api_key", "key", "token", "secret", "password")
 
 
 class StrictModel(BaseModel):
@@ -46,8 +48,16 @@ def parse_model(model: type[M], cfg: Any, *, prefix: str, title: str, **override
     try:
         return model.model_validate(data)
     except ValidationError as e:
-        lines = [
-            f"{prefix}.{'.'.join(str(p) for p in err['loc']) or prefix}: {err['msg']} (got {err.get('input')!r})"
-            for err in e.errors()
-        ]
-        raise ValueError(f"invalid {title} config:\n  " + "\n  ".join(lines)) from None
+        raise ValueError(f"invalid {title} config:\n  " + "\n  ".join(error_lines(e, prefix))) from None
+
+
+def error_lines(e: ValidationError, prefix: str) -> list[str]:
+    """One line per error, naming the field and the value it got; an unknown key's value is not
+    quoted (its name is what is wrong, and a value typed under a wrong name may be a secret)."""
+    lines = []
+    for err in e.errors():
+        field = f"{prefix}.{'.'.join(str(p) for p in err['loc'])}" if err["loc"] else prefix
+        quiet = err["type"] == "extra_forbidden" or (err["loc"] and str(err["loc"][-1]) in UNQUOTED_FIELDS)
+        got = "" if quiet else f" (got {err.get('input')!r})"
+        lines.append(f"{field}: {err['msg']}{got}")
+    return lines

@@ -5,9 +5,13 @@ a concurrency limit; each runs the extractor's ask-again loop (paper: at most 10
 ``advise_sync`` serves a plain training loop from one background event loop and one client;
 ``submit`` starts the same work there and returns a future at once (the loop runs its updates
 while the requests are in flight).
-The advisor never applies the fallback itself: an :class:`AdviceFailure` carries
-``cfg.fallback`` and the caller (the override module) ends the episode or uses the policy's or
-the heuristic's action.
+The advisor never applies a fallback itself: an :class:`AdviceFailure` goes back to the
+caller, and the override module applies its one setting, ``advisor.fallback``.
+
+An endpoint that is down stops the run: after ``max_failed_rows`` rows in a row that the
+endpoint did not answer (connection refused, 5xx or 429 after the retries, no answer within
+``row_deadline_s``), every call raises one :class:`EndpointError` naming the endpoint and what
+failed. A row that got answers, valid or not, shows the endpoint is up and resets the count.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from typing import Any, Sequence
 import httpx
 
 from .cache import AdviceCache, cache_key
-from .client import BadResponse, PermanentFailure, RequestFailed, chat_completion
+from .client import BadResponse, PermanentFailure, RequestFailed, RowDeadline, chat_completion
 from .config import LLMConfig, make_llm_config
 from .extractor import extract_action
 from .prompt import build_messages, episode_text, retry_message, template
@@ -69,6 +73,7 @@ class AdvisorStats:
             self.prompt_tokens = 0
             self.cached_prompt_tokens = 0  # of prompt_tokens, reused from the server's prefix cache
             self.completion_tokens = 0
+            self.call_s = 0.0  # the answered calls' latencies, summed: the time spent on the LLM
             self.latencies: deque[float] = deque(maxlen=self._window)  # per answered HTTP call
 
     def __getstate__(self) -> dict:
@@ -97,7 +102,7 @@ class AdvisorStats:
                 "retries": self.retries, "ask_again": self.ask_again, "advice_ok": self.advice_ok,
                 "failures": sum(self.failures.values()), "prompt_tokens": self.prompt_tokens,
                 "cached_prompt_tokens": self.cached_prompt_tokens,
-                "completion_tokens": self.completion_tokens,
+                "completion_tokens": self.completion_tokens, "call_s": self.call_s,
                 "latency_p50_s": q(0.50), "latency_p95_s": q(0.95),
             }
             out.update({f"failures/{k}": v for k, v in sorted(self.failures.items())})
@@ -136,6 +141,7 @@ class LLMAdvisor:
         self._lock = threading.Lock()
         self._fatal: EndpointError | None = None  # a permanent endpoint fault: every later call raises it
         self._endpoint_ok = False  # has this endpoint ever answered with a chat completion?
+        self._unanswered: list[tuple[FailureKind, str]] = []  # the rows in a row the endpoint did not answer
         # slot_affinity: episode (map) -> server slot, least recently used slot first to go
         self._slot_of: OrderedDict[str, int] = OrderedDict()
         self._slot_order: list[int] = []  # LRU first; filled from the server's /props
@@ -154,7 +160,7 @@ class LLMAdvisor:
 
     def __repr__(self) -> str:
         return (f"LLMAdvisor(model={self.cfg.model!r}, base_url={self.base_url_or_none!r}, "
-                f"cache_mode={self.cfg.cache_mode!r}, fallback={self.cfg.fallback!r})")
+                f"cache_mode={self.cfg.cache_mode!r}, max_failed_rows={self.cfg.max_failed_rows!r})")
 
     def __enter__(self) -> "LLMAdvisor":
         return self
@@ -383,6 +389,8 @@ class LLMAdvisor:
         history: list[FailureKind] = []
         t0 = time.perf_counter()
         current = messages
+        clock = RowDeadline(c.row_deadline_s)
+        answered = False  # did the endpoint answer this row at all (a valid action or not)?
 
         def on_retry(kind: FailureKind, detail: str) -> None:
             self.stats.add(retries=1, calls=1)
@@ -390,33 +398,38 @@ class LLMAdvisor:
 
         for attempt in range(1, c.max_attempts + 1):
             if self._fatal is not None:  # a sibling request met a permanent fault: stop asking
-                return self._fail(FailureKind.HTTP_ERROR, "endpoint refused", attempt, history, quiet=True)
+                return self._fail(FailureKind.HTTP_ERROR, "endpoint refused", attempt, history)
+            if clock.left() <= 0:
+                return self._row_failed(url, FailureKind.TIMEOUT, clock.why(), attempt - 1, history, answered)
             try:
                 res = await chat_completion(
                     client, url, self._body(current, state, attempt, slot), headers, timeout_s=c.timeout_s,
                     max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
                     backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
                     max_response_bytes=c.max_response_bytes, slot=slots, on_retry=on_retry,
-                    stop=lambda: self._fatal is not None)
+                    stop=lambda: self._fatal is not None, deadline=clock)
             except PermanentFailure as e:
                 self.stats.add(calls=0 if e.status is None else 1)
                 if e.status == 200 and self._endpoint_ok:  # it served chat completions before: a glitch
                     kind, reason = FailureKind.INVALID_JSON, e.detail
+                    answered = True
                 else:
                     self._set_fatal(url, e)
-                    return self._fail(FailureKind.HTTP_ERROR, e.detail, attempt, history, quiet=True)
+                    return self._fail(FailureKind.HTTP_ERROR, e.detail, attempt, history)
             except RequestFailed as e:
                 self.stats.add(calls=1)
-                return self._fail(e.kind, e.detail, attempt, history)
+                return self._row_failed(url, e.kind, e.detail, attempt, history, answered)
             except BadResponse as e:
                 self.stats.add(calls=1)
                 kind, reason = e.kind, e.detail
+                answered = True
             else:
+                answered = True
                 self._endpoint_ok = True
                 if self.on_call is not None:
                     self.on_call(res)
                 self.stats.add(calls=1, prompt_tokens=res.prompt_tokens, cached_prompt_tokens=res.cached_tokens,
-                               completion_tokens=res.completion_tokens)
+                               completion_tokens=res.completion_tokens, call_s=res.latency_s)
                 with self.stats._lock:
                     self.stats.latencies.append(res.latency_s)
                 try:
@@ -431,6 +444,8 @@ class LLMAdvisor:
                     if self._cache is not None and c.cache_mode == "read_write":
                         self._cache.put(key, c.model, advice)
                     self.stats.add(advice_ok=1)
+                    with self._lock:
+                        self._unanswered.clear()
                     return advice
             history.append(kind)
             with self.stats._lock:
@@ -439,8 +454,36 @@ class LLMAdvisor:
             if attempt < c.max_attempts:
                 self.stats.add(ask_again=1)
                 current = messages + [retry_message(reason, state.limits)]
-        return self._fail(history[-1], f"no valid action in {c.max_attempts} attempts", c.max_attempts,
-                          history)
+        return self._row_failed(url, history[-1], f"no valid action in {c.max_attempts} attempts", c.max_attempts,
+                                history, answered)
+
+    def _row_failed(self, url: str, kind: FailureKind, detail: str, attempts: int, history: list[FailureKind],
+                    answered: bool) -> AdviceFailure:
+        """A row with no valid action. One the endpoint did not answer counts toward
+        ``max_failed_rows``; one it answered (with bad actions) shows it is up."""
+        failure = self._fail(kind, detail, attempts, history)
+        limit = self.cfg.max_failed_rows
+        with self._lock:
+            if answered:
+                self._unanswered.clear()
+                return failure
+            self._unanswered.append((kind, failure.detail))
+            if limit is not None and len(self._unanswered) >= limit and self._fatal is None:
+                self._fatal = EndpointError(self._outage(url))
+        return failure
+
+    def _outage(self, url: str) -> str:
+        what = {FailureKind.CONNECTION: "could not connect", FailureKind.TIMEOUT: "no answer in time",
+                FailureKind.SERVER_ERROR: "server error (5xx)", FailureKind.RATE_LIMITED: "rate limited (429)",
+                FailureKind.HTTP_ERROR: "request refused (4xx)"}
+        kinds = Counter(k for k, _ in self._unanswered)
+        summary = ", ".join(f"{what.get(k, k.value)} x{n}" for k, n in kinds.most_common())
+        n = len(self._unanswered)
+        c = self.cfg
+        key_note = f" (key from ${c.api_key_env})" if c.api_key_env else ""
+        return (f"LLM endpoint {url}{key_note} left {n} rows in a row unanswered ({summary}); the last: "
+                f"{self._redact(self._unanswered[-1][1])[:200]}. The run stops (llm.max_failed_rows={n}; "
+                "null lets advisor.fallback act on every failed row instead)")
 
     def _set_fatal(self, url: str, e: PermanentFailure) -> None:
         if self._fatal is not None:
@@ -460,17 +503,14 @@ class LLMAdvisor:
                                     f"{self._redact(e.detail)[:200]}")
 
     def _fail(self, kind: FailureKind, detail: str, attempts: int,
-              history: list[FailureKind], quiet: bool = False) -> AdviceFailure:
+              history: list[FailureKind]) -> AdviceFailure:
+        # logged once per step by the caller, with the fallback setting that acts, or ended by
+        # the EndpointError's one message
         with self.stats._lock:
             self.stats.failures[kind.value] += 1
         detail = self._redact(detail)
-        if quiet:  # the run stops with the EndpointError's one message
-            return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
-                                 history=tuple(history))
-        log.warning("LLM advice failed (%s) after %d attempt(s): %s; fallback=%s", kind.value, attempts,
-                    detail, self.cfg.fallback)
-        return AdviceFailure(kind=kind, detail=detail, attempts=attempts, fallback=self.cfg.fallback,
-                             history=tuple(history))
+        log.debug("LLM advice failed (%s) after %d attempt(s): %s", kind.value, attempts, detail)
+        return AdviceFailure(kind=kind, detail=detail, attempts=attempts, history=tuple(history))
 
     # -- sync wrapper for a plain training loop ---------------------------------------------
     def _background_loop(self) -> asyncio.AbstractEventLoop:

@@ -3,7 +3,8 @@
 Retried with exponential backoff and jitter: connection errors, timeouts, 5xx, and 429 (after
 ``Retry-After`` when the server sends it, capped). Other 4xx fail at once. The whole request,
 body included, has one deadline, and the body is read up to a byte limit, so a slow drip or a
-huge answer can neither hang nor exhaust memory.
+huge answer can neither hang nor exhaust memory. A :class:`RowDeadline` bounds one row's
+requests together: every request, retry and backoff ends by it.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import email.utils
 import json
+import math
 import random
 import time
 from dataclasses import dataclass
@@ -59,6 +61,26 @@ class BadResponse(Exception):
     def __init__(self, kind: FailureKind, detail: str):
         super().__init__(f"{kind.value}: {detail}")
         self.kind, self.detail = kind, detail
+
+
+class RowDeadline:
+    """What one row may cost in time, whatever its attempts and retries. The clock starts when
+    the row's first request is sent, not while the row waits behind other rows for a free
+    connection, so a busy but healthy server does not fail rows that were never asked."""
+
+    def __init__(self, seconds: float):
+        self.seconds = float(seconds)
+        self.t0: float | None = None
+
+    def start(self) -> None:
+        if self.t0 is None:
+            self.t0 = time.monotonic()
+
+    def left(self) -> float:
+        return math.inf if self.t0 is None else self.seconds - (time.monotonic() - self.t0)
+
+    def why(self) -> str:
+        return f"no valid answer within the row deadline of {self.seconds:g} s (llm.row_deadline_s)"
 
 
 class _Retryable(Exception):
@@ -124,12 +146,15 @@ async def _post_once(client: httpx.AsyncClient, url: str, body: dict, headers: d
                                f"completion ({type(e).__name__}): {raw[:120].decode('utf-8', 'replace')!r}") from None
     usage = data.get("usage") or {}
     details = usage.get("prompt_tokens_details") if isinstance(usage, dict) else None
+    cached = (details or {}).get("cached_tokens") if isinstance(details, dict) else None
+    if cached is None:  # DeepSeek names it so (its price differs from a computed token's)
+        cached = usage.get("prompt_cache_hit_tokens")
     return ChatResult(
         text=text if isinstance(text, str) else None,
         finish_reason=finish if isinstance(finish, str) else None,
         prompt_tokens=int(usage.get("prompt_tokens") or 0),
         completion_tokens=int(usage.get("completion_tokens") or 0),
-        cached_tokens=int((details or {}).get("cached_tokens") or 0) if isinstance(details, dict) else 0,
+        cached_tokens=int(cached or 0),
         latency_s=latency,
         timings=data.get("timings") if isinstance(data.get("timings"), dict) else None,
     )
@@ -150,32 +175,55 @@ async def chat_completion(
     slot: asyncio.Semaphore | None = None,
     on_retry: Callable[[FailureKind, str], None] | None = None,
     stop: Callable[[], bool] | None = None,
+    deadline: RowDeadline | None = None,
 ) -> ChatResult:
-    """POST ``body`` to ``url``; raise RequestFailed after ``max_retries`` retries, or BadResponse."""
+    """POST ``body`` to ``url``; raise RequestFailed after ``max_retries`` retries or at the
+    row's ``deadline``, or BadResponse."""
+    deadline = deadline or RowDeadline(math.inf)
     last: _Retryable | None = None
-    for retry in range(max_retries + 1):
+    retries = 0
+
+    async def post() -> ChatResult:
+        deadline.start()
+        limit = min(timeout_s, deadline.left())
+        if limit <= 0:
+            raise _Expired()
+        async with asyncio.timeout(limit):
+            return await _post_once(client, url, body, headers, limit, max_response_bytes)
+
+    for retries in range(max_retries + 1):
         try:
             if slot is not None:
                 async with slot:
                     if stop is not None and stop():  # a request queued behind a permanent fault
                         raise PermanentFailure(None, "not sent: the endpoint refused an earlier request")
-                    async with asyncio.timeout(timeout_s):
-                        return await _post_once(client, url, body, headers, timeout_s, max_response_bytes)
-            async with asyncio.timeout(timeout_s):
-                return await _post_once(client, url, body, headers, timeout_s, max_response_bytes)
+                    return await post()
+            return await post()
         except _Retryable as e:
             last = e
-        except (TimeoutError, httpx.TimeoutException):
+        except (TimeoutError, httpx.TimeoutException, _Expired):
+            if deadline.left() <= 0:
+                raise RequestFailed(FailureKind.TIMEOUT, f"{deadline.why()}{_after(retries)}") from None
             last = _Retryable(FailureKind.TIMEOUT, f"no complete answer within {timeout_s:g} s")
         except httpx.TransportError as e:  # connect refused/reset, protocol errors
             last = _Retryable(FailureKind.CONNECTION, f"{type(e).__name__}: {e}")
-        if retry == max_retries:
+        if retries == max_retries:
             break
-        wait = min(backoff_max_s, backoff_base_s * 2**retry) * (0.5 + random.random() / 2)
+        wait = min(backoff_max_s, backoff_base_s * 2**retries) * (0.5 + random.random() / 2)
         if last.wait is not None:  # Retry-After, honoured up to the cap
             wait = min(last.wait, retry_after_max_s)
+        if wait >= deadline.left():  # the row would run out while waiting: it fails now
+            break
         if on_retry is not None:
             on_retry(last.kind, last.detail)
         await asyncio.sleep(wait)
     assert last is not None
-    raise RequestFailed(last.kind, f"{last.detail} (after {max_retries} retries)")
+    raise RequestFailed(last.kind, f"{last.detail}{_after(retries)}")
+
+
+class _Expired(Exception):
+    """The row's deadline had passed before a request could be sent."""
+
+
+def _after(retries: int) -> str:
+    return f" (after {retries} retries)" if retries else ""

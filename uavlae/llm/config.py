@@ -5,17 +5,17 @@ The API key never lives here: ``api_key_env`` names the environment variable tha
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from uavlae.validation import StrictModel, config_data, parse_model
 
 ResponseFormat = Literal["json_schema", "json_object", "grammar", "none"]
 CacheMode = Literal["off", "read_write", "replay_only"]
 Ablation = Literal["none", "no_safety", "no_compliance", "no_data", "no_energy"]
-Fallback = Literal["end_episode", "policy", "heuristic"]
 Observation = Literal["compact", "verbose"]
 Example = Literal["paper", "placeholder", "none"]
 GrammarStyle = Literal["auto", "compact", "verbose"]
@@ -42,6 +42,9 @@ class ServerConfig(StrictModel):
 
 
 class LLMConfig(StrictModel):
+    # a ValidationError's own text would quote the value, and api_key_env's may be a key
+    model_config = ConfigDict(**StrictModel.model_config, hide_input_in_errors=True)
+
     base_url: str | None = None  # ".../v1"; None with server.autostart: the local server's URL
     model: str = "smollm2-135m-instruct"
     api_key_env: str | None = None  # NAME of the env var holding the key; never the key
@@ -51,6 +54,13 @@ class LLMConfig(StrictModel):
     seed: int | None = 0  # sent when not None; part of the cache key
     max_tokens: int = Field(96, ge=16)
     timeout_s: float = Field(120.0, gt=0)  # per HTTP request
+    # one row's whole cost in time: its attempts, retries and backoff together stop this long
+    # after its first request was sent (time queued behind other rows does not count)
+    row_deadline_s: float = Field(60.0, gt=0)
+    # this many rows in a row that the endpoint did not answer (connection refused, 5xx or 429
+    # after the retries, no answer within the deadline) stop the run with an EndpointError
+    # naming the endpoint and what failed; null: never stop, advisor.fallback acts on each
+    max_failed_rows: int | None = Field(3, ge=1)
     max_concurrency: int = Field(1, ge=1)  # requests in flight at once (at most server.n_parallel)
     # llama.cpp only: send each state to the server slot that last served its episode (its map),
     # so the zones and GEs stay a cached prefix there; server.n_parallel is the slot count
@@ -84,8 +94,21 @@ class LLMConfig(StrictModel):
     # step (m for positions, m/s for velocities, data units), so near-identical states share one
     # answer; the prompt sent is still the exact one
     cache_key_round: float | None = Field(None, gt=0)
-    fallback: Fallback = "end_episode"  # applied by the caller on an AdviceFailure
+    # what the endpoint charges per million tokens (null: no price, no money in the cost):
+    # prompt tokens it computed, prompt tokens it served from its cache, completion tokens
+    price_input_per_mtok: float | None = Field(None, ge=0)
+    price_cached_input_per_mtok: float | None = Field(None, ge=0)  # null: as price_input_per_mtok
+    price_output_per_mtok: float | None = Field(None, ge=0)
+    price_currency: str = Field("USD", min_length=1, max_length=8)
     server: ServerConfig = ServerConfig()
+
+    @field_validator("api_key_env")
+    @classmethod
+    def _a_name_not_a_key(cls, v: str | None) -> str | None:
+        if v is not None and not looks_like_variable_name(v):
+            # never echo the value: it may be the key itself
+            raise ValueError(NOT_A_VARIABLE_NAME.format(n=len(v)))
+        return v
 
     @model_validator(mode="after")
     def _check(self) -> "LLMConfig":
@@ -97,7 +120,69 @@ class LLMConfig(StrictModel):
             raise ValueError(f"llm.cache_path is required with cache_mode={self.cache_mode!r}")
         if self.backoff_base_s > self.backoff_max_s:
             raise ValueError("llm.backoff_base_s must be <= llm.backoff_max_s")
+        if (self.price_input_per_mtok is None) != (self.price_output_per_mtok is None):
+            raise ValueError("llm.price_input_per_mtok and llm.price_output_per_mtok go together: set both or neither")
         return self
+
+    def price(self) -> tuple[float, float, float] | None:
+        """(input, cached input, output) per million tokens, or None without a price."""
+        if self.price_input_per_mtok is None or self.price_output_per_mtok is None:
+            return None
+        cached = self.price_cached_input_per_mtok
+        return (self.price_input_per_mtok, self.price_input_per_mtok if cached is None else cached,
+                self.price_output_per_mtok)
+
+
+# An environment variable's name: letters, digits and underscores. A key is long and random:
+# a part between underscores of 16+ characters that mixes digits with letters, or lower with
+# upper case, is taken for one (no variable of ours or of the usual providers looks like that).
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,127}")
+NOT_A_VARIABLE_NAME = (
+    "must be the NAME of an environment variable that holds the key (e.g. DEEPSEEK_API_KEY); the value given "
+    "({n} characters) looks like a key itself, so it was not used: export the key in a variable and name that "
+    "variable here")
+SECRET_SETTINGS = ("api_key", "key", "token", "secret", "password")  # never LLMConfig fields
+KEY_IS_NO_SETTING = ("the API key is never a setting (the value was not used): export it in an environment "
+                     "variable and name that variable in llm.api_key_env")
+REMOVED_SETTINGS = {"fallback": "advisor.fallback is the one fallback setting (llm.fallback was only logged, "
+                                "never applied)"}
+
+
+def looks_like_variable_name(v: str) -> bool:
+    if not _NAME.fullmatch(v):
+        return False
+    for part in v.split("_"):
+        mixed_digits = any(c.isdigit() for c in part) and any(c.isalpha() for c in part)
+        mixed_case = any(c.islower() for c in part) and any(c.isupper() for c in part)
+        if len(part) >= 16 and (mixed_digits or mixed_case):
+            return False
+    return True
+
+
+def refuse_secret_overrides(argv: list[str]) -> None:
+    """Stop a command line that holds an API key before anything writes it down (Hydra copies
+    the command line into the run folder, ``.hydra/overrides.yaml``, before the config is read):
+    ``llm.api_key=...`` in any form, or an ``llm.api_key_env`` value that looks like a key. The
+    message never quotes the value."""
+    for arg in argv[1:]:
+        key, eq, value = arg.partition("=")
+        if not eq:
+            continue
+        name = key.lstrip("+~")
+        if name.startswith("llm.") and name.rsplit(".", 1)[-1] in SECRET_SETTINGS:
+            raise SystemExit(f"refused: {name}: {KEY_IS_NO_SETTING}")
+        if name == "llm.api_key_env" and value not in ("", "null") and not looks_like_variable_name(value):
+            raise SystemExit(f"refused: llm.api_key_env {NOT_A_VARIABLE_NAME.format(n=len(value))}")
+
+
+def _refuse_secrets_and_removed(data: dict[str, Any]) -> None:
+    """A key given as a setting is refused without its value; a removed setting names its heir."""
+    for name in SECRET_SETTINGS:
+        if name in data:
+            raise ValueError(f"invalid LLM config:\n  llm.{name}: {KEY_IS_NO_SETTING}")
+    for name, why in REMOVED_SETTINGS.items():
+        if name in data:
+            raise ValueError(f"invalid LLM config:\n  llm.{name} was removed: {why}")
 
 
 def make_llm_config(cfg: Any = None, **overrides: Any) -> LLMConfig:
@@ -124,4 +209,8 @@ def make_llm_config(cfg: Any = None, **overrides: Any) -> LLMConfig:
             if isinstance(node, BaseModel):
                 raise TypeError("nested overrides need a mapping config")
         node[leaf] = value
+    _refuse_secrets_and_removed(data)
+    if isinstance(data.get("api_key_env"), str) and not looks_like_variable_name(data["api_key_env"]):
+        n = len(data["api_key_env"])
+        raise ValueError("invalid LLM config:\n  llm.api_key_env " + NOT_A_VARIABLE_NAME.format(n=n))
     return parse_model(LLMConfig, data, prefix="llm", title="LLM")

@@ -91,13 +91,12 @@ class Advice:
 
 @dataclass(frozen=True)
 class AdviceFailure:
-    """No valid action. ``fallback`` is the configured policy the CALLER must apply:
-    "end_episode" (paper), "policy" (use the SAC action) or "heuristic"."""
+    """No valid action; the caller applies its one fallback setting (the override's
+    ``advisor.fallback``: end the episode as the paper does, the actor's or the heuristic's action)."""
 
     kind: FailureKind
     detail: str
     attempts: int
-    fallback: str
     history: tuple[FailureKind, ...] = field(default_factory=tuple)  # kind of each rejected try
 
     ok = False
@@ -116,5 +115,5 @@ class CacheMissError(RuntimeError):
 
 class EndpointError(RuntimeError):
     """A permanent fault of the endpoint (rejected key, unknown model, not an OpenAI-compatible
-    server): retrying cannot help, so the run stops. The message names the endpoint and the
-    key's environment variable, never the key."""
+    server), or an outage (``max_failed_rows`` rows in a row it did not answer): the run stops.
+    The message names the endpoint, what failed and the key's environment variable, never the key."""

@@ -50,6 +50,7 @@ class LocalServer:
     base_url: str  # http://127.0.0.1:PORT/v1
     pid: int
     model_path: str
+    slots_dir: str = ""  # where the server saves slots (the advisor's copies of the system prompt); removed with it
 
 
 class ServerStartError(RuntimeError):
@@ -98,7 +99,9 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
            "--threads", str(cfg.n_threads), "--parallel", str(cfg.n_parallel),
            "--ctx-per-slot", str(cfg.ctx_per_slot), "--port", str(port),
            "--batch", str(cfg.n_batch), "--ubatch", str(cfg.n_ubatch), "--flash-attn", cfg.flash_attn,
-           "--cache-ram-mib", str(cfg.cache_ram_mib), "--slot-save-path", slots_dir] + (
+           # llama.cpp joins this path and the file name as strings: without the trailing
+           # separator the files land beside the folder, in the temp folder, and stay there
+           "--cache-ram-mib", str(cfg.cache_ram_mib), "--slot-save-path", os.path.join(slots_dir, "")] + (
                [] if cfg.cont_batching else ["--no-cont-batching"])
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg.n_threads))
     root = str(Path(__file__).resolve().parents[2])  # the child imports this package from here too
@@ -127,7 +130,7 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise ServerStartError(_why("never became healthy", proc, log))
             time.sleep(0.2)
-        yield LocalServer(base_url=address + "/v1", pid=proc.pid, model_path=model)
+        yield LocalServer(base_url=address + "/v1", pid=proc.pid, model_path=model, slots_dir=slots_dir)
     finally:
         _stop(proc)
         shutil.rmtree(slots_dir, ignore_errors=True)

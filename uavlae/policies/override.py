@@ -26,25 +26,31 @@ within the perception radius, as the DCU sees it, which matters once ``d_th`` ex
 (each row with probability ``fp`` from the module's own seeded generator, whatever the
 surroundings), ``"always"`` (the ``llm`` baseline) and ``"never"``.
 
-Failed advice (``ok`` False) follows ``fallback``: ``"policy"`` keeps the actor's action,
-``"heuristic"`` executes the heuristic's action (both recorded as FALLBACK), and
-``"end_episode"`` (paper §5.3) keeps the actor's action and sets ``"override_abort"`` for that
-row so :class:`uavlae.collect.UAVCollector` ends the episode there.
+Failed advice (``ok`` False) follows ``fallback``, the one fallback setting
+(``advisor.fallback``): ``"policy"`` keeps the actor's action, ``"heuristic"`` executes the
+heuristic's action (both recorded as FALLBACK), and ``"end_episode"`` (paper §5.3) keeps the
+actor's action and sets ``"override_abort"`` for that row so
+:class:`uavlae.collect.UAVCollector` ends the episode there. A step with failed rows logs one
+warning naming that setting. An LLM endpoint that is down is not a failed row but the end of
+the run: the advisor raises its ``EndpointError`` through ``result()``.
 
 Advisors share one small protocol (duck-typed, see :class:`Advisor`)::
 
     advise(td_rows, rows) -> (actions [n, 2] in [-1, 1], ok [n] bool)
 
 where ``td_rows`` is the tensordict of the triggered rows only (with its ``("state", ...)``
-entries) and ``rows`` their indices in the batch. An advisor may expose ``source`` (the
-``action_source`` value of its successful actions, default LLM), ``fallback`` (its own
-configured fallback, used when the policy's ``fallback`` is None), ``snapshot()`` (counters),
-``close()``, ``start(td_rows, rows)``: the same request sent without waiting, returning a
-handle whose ``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on
-the server while the caller works), and ``observe(td)``: called with the whole batch at every
-step the override is on, before any row is asked, by an advisor whose answers depend on what it
-remembers of earlier slots (the heuristics): it then keeps that memory per env row, however the
-set of triggered rows changes from slot to slot.
+entries) and ``rows`` their indices in the batch; an advisor that answers through several
+hands (the student advisor, :mod:`uavlae.policies.student`) returns a third tensor, each row's
+``action_source``. An advisor may expose ``source`` (the ``action_source`` value of its
+successful actions, default LLM), ``fallback`` (its own fallback, used when the policy's
+``fallback`` is None), ``snapshot()`` (counters), ``price()`` (an LLM's price per million
+tokens: :meth:`OverridePolicy.cost` then counts the money), ``close()``,
+``start(td_rows, rows)``: the same request sent without waiting, returning a handle whose
+``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on the server
+while the caller works) and whose ``failures`` says what failed, and ``observe(td)``: called
+with the whole batch at every step the override is on, before any row is asked, by an advisor
+whose answers depend on what it remembers of earlier slots (the heuristics): it then keeps that
+memory per env row, however the set of triggered rows changes from slot to slot.
 
 A step in two halves: :meth:`OverridePolicy.begin` decides the triggered rows from the state
 alone and starts their advice; :meth:`OverridePolicy.finish` runs the actor, waits for the
@@ -87,7 +93,9 @@ or a pickle (``LLMAdvisor.__getstate__`` drops it).
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import logging
 import math
 import time
 from collections.abc import Iterator, Mapping
@@ -111,7 +119,17 @@ PROXIMITY_KEYS = (("state", "d_bz"), ("state", "d_nfz"), ("state", "d_rz"), ("st
 STEP_KEY = ("state", "step")  # the slot within the episode: a held answer never crosses a reset
 # what an advisor's snapshot counts (summed over the run by OverridePolicy.run_totals)
 ADVISOR_COUNTS = ("requests", "calls", "cache_hits", "retries", "ask_again", "advice_ok", "failures",
-                  "prompt_tokens", "completion_tokens", "rows_advised")
+                  "prompt_tokens", "cached_prompt_tokens", "completion_tokens", "call_s", "rows_advised",
+                  # the student advisor's (uavlae.policies.student): who answered, why the LLM was asked,
+                  # and how far the student's answer lay from the LLM's where both answered
+                  "student/rows", "student/llm_rows", "student/student_rows", "student/asked_warmup",
+                  "student/asked_unsure", "student/asked_novel", "student/asked_audit", "student/audit_err_rows",
+                  "student/audit_err_sum", "student/llm_err_rows", "student/llm_err_sum", "student/updates",
+                  "student/train_s")
+# the seconds between failure warnings: a weak model's rare bad rows are counted, not each logged
+WARN_EVERY_S = 60.0
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "ADVICE_SOURCES", "Advisor", "FALLBACK", "HEURISTIC", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter",
@@ -257,7 +275,7 @@ class LLMAdvisorAdapter:
     and the world limits of ``env_cfg``), all go to ``advise_sync`` in one call so the
     advisor sends them concurrently (up to its ``max_concurrency``), and each validated
     velocity becomes the action ``v / v_max`` (SPEC §2). An ``AdviceFailure`` gives ``ok``
-    False; the override policy applies the fallback.
+    False; the override policy applies its fallback.
 
     Args:
         llm: the advisor (owns its client, cache and possibly a local server).
@@ -277,35 +295,45 @@ class LLMAdvisorAdapter:
         self.timeout = timeout
         self.run_latencies: list[float] = []  # the windows already reset, for the run's quantiles
 
-    @property
-    def fallback(self) -> str:
-        return self.llm.cfg.fallback
-
     def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
         return self.start(td_rows, rows).result()
 
     def start(self, td_rows: TensorDictBase, rows: Tensor) -> Any:
         """Send the rows' requests and return at once; ``result()`` waits for the answers."""
+        return self.ask(self.states(td_rows))
+
+    def states(self, td_rows: TensorDictBase) -> list[Any]:
+        """The rows as the LLM sees them (:class:`~uavlae.llm.AdvisorState`, of its view)."""
         from uavlae.llm import advisor_states_from_tensordict
 
         n = td_rows.batch_size[0]
         cfg = getattr(self.llm, "cfg", None)
         local = getattr(cfg, "view", "full") == "local"  # the LLM alone: what lies within view_radius
-        states = advisor_states_from_tensordict(td_rows, list(range(n)), self.limits,
-                                                view_radius=cfg.view_radius if local else None)
+        return advisor_states_from_tensordict(td_rows, list(range(n)), self.limits,
+                                              view_radius=cfg.view_radius if local else None)
+
+    def ask(self, states: list[Any]) -> "_LLMHandle":
+        """The LLM's answers to ``states``, in flight (answered at once by an advisor that has
+        only the blocking call)."""
         submit = getattr(self.llm, "submit", None)
-        if submit is None:  # an advisor with only the blocking call
-            return _Answered(self._actions(self.llm.advise_sync(states, timeout=self.timeout)))
+        if submit is None:
+            future: concurrent.futures.Future = concurrent.futures.Future()
+            future.set_result(self.llm.advise_sync(states, timeout=self.timeout))
+            return _LLMHandle(self, future)
         return _LLMHandle(self, submit(states))
 
-    def _actions(self, results: list[Any]) -> tuple[Tensor, Tensor]:
-        from uavlae.llm import Advice
+    def price(self) -> tuple[float, float, float, str] | None:
+        """(input, cached input, output) per million tokens and the currency; None without a price."""
+        cfg = getattr(self.llm, "cfg", None)
+        price = cfg.price() if cfg is not None else None
+        return None if price is None else (*price, cfg.price_currency)
 
+    def _actions(self, results: list[Any]) -> tuple[Tensor, Tensor]:
         v_max = self.limits.v_max
         actions = torch.zeros(len(results), 2)
         ok = torch.zeros(len(results), dtype=torch.bool)
         for i, r in enumerate(results):
-            if isinstance(r, Advice):
+            if r.ok:
                 actions[i] = torch.tensor(r.action(v_max))
                 ok[i] = True
         return actions.clamp(-1.0, 1.0), ok
@@ -336,13 +364,20 @@ class _LLMHandle:
         self.adapter = adapter
         self.future = future
         self.done_at: float | None = None
+        self.failures: list[str] = []  # what failed, one line per failed row, once answered
         future.add_done_callback(self._arrived)
 
     def _arrived(self, _future: Any) -> None:
         self.done_at = time.perf_counter()
 
+    def answers(self) -> list[Any]:
+        """The advisor's results (Advice or AdviceFailure), in order; raises its EndpointError."""
+        results = self.future.result(self.adapter.timeout)
+        self.failures = [f"{r.kind.value}: {r.detail}" for r in results if not r.ok]
+        return results
+
     def result(self) -> tuple[Tensor, Tensor]:
-        return self.adapter._actions(self.future.result(self.adapter.timeout))
+        return self.adapter._actions(self.answers())
 
 
 # ---------------------------------------------------------------------------- the module
@@ -359,7 +394,7 @@ class OverridePolicy(TensorDictModuleBase):
         d_th: proximity threshold, metres (SPEC §8: 15 m).
         fp: trigger probability of ``"fixed_prob"`` (paper: 0.3, 0.4, 0.5, 1.0).
         fallback: ``"policy"`` | ``"heuristic"`` | ``"end_episode"``; ``None`` takes the
-            advisor's ``fallback`` (the LLM config's) or ``"policy"``.
+            advisor's ``fallback`` or ``"policy"``.
         heuristic: a ``HeuristicPolicy`` for ``fallback="heuristic"`` (a
             :class:`HeuristicAdvisor`'s own heuristic is used when this is None).
         seed: seeds the trigger generator of ``"fixed_prob"``.
@@ -450,6 +485,7 @@ class OverridePolicy(TensorDictModuleBase):
         self.reset_counters()
         self.totals = dict(self.counts)  # never reset: the run's counters (run_totals)
         self.advisor_totals = {k: 0.0 for k in ADVISOR_COUNTS}  # the advisor's, summed over resets
+        self._warned_at, self._failed_quiet = -math.inf, 0  # failure warnings (_warn_failed)
 
     # ------------------------------------------------------------------ switches
     @property
@@ -585,8 +621,9 @@ class OverridePolicy(TensorDictModuleBase):
         wait = 0.0
         if rows.numel():
             t0 = time.perf_counter()
-            adv_action, ok = pending.handle.result()
+            answer = pending.handle.result()
             wait = time.perf_counter() - t0
+            adv_action, ok = answer[0], answer[1]
             adv_action = adv_action.to(device=action.device, dtype=action.dtype).clamp(-1.0, 1.0)
             ok = ok.to(device=action.device, dtype=torch.bool).reshape(-1)
             if adv_action.shape != (rows.numel(), action.shape[-1]) or ok.shape[0] != rows.numel():
@@ -596,8 +633,12 @@ class OverridePolicy(TensorDictModuleBase):
                 )
             good, bad = rows[ok], rows[~ok]
             action[good] = adv_action[ok]
-            source[good] = int(getattr(self.advisor, "source", LLM))
+            if len(answer) > 2:  # an advisor that answers through several hands names each row's
+                source[good] = answer[2].to(device=source.device, dtype=source.dtype).reshape(-1)[ok]
+            else:
+                source[good] = int(getattr(self.advisor, "source", LLM))
             if bad.numel():
+                self._warn_failed(pending, int(bad.numel()), int(rows.numel()))
                 source[bad] = FALLBACK
                 if self.fallback == "heuristic":
                     hact = self.heuristic.act(td[bad].get("state"))
@@ -615,6 +656,20 @@ class OverridePolicy(TensorDictModuleBase):
             self._count(source, trig, abort, held, pending.skipped, int(rows.numel()), wait)
             self._count_agreement(td, own, action, source)
         return td
+
+    def _warn_failed(self, pending: Pending, n_bad: int, n_asked: int) -> None:
+        """One warning for a step's failed rows, naming the setting that acts on them (at most
+        one every WARN_EVERY_S; every failed row is counted in ``source/fallback``)."""
+        self._failed_quiet += 1
+        now = time.monotonic()
+        if now - self._warned_at < WARN_EVERY_S:
+            return
+        why = sorted(set(getattr(pending.handle, "failures", None) or []))
+        since = self._failed_quiet - 1
+        quiet = f"; {since} step(s) with failures since the last warning" if self._warned_at > -math.inf else ""
+        log.warning("advice failed on %d of %d asked row(s)%s; advisor.fallback=%s acts there%s", n_bad, n_asked,
+                    f" ({'; '.join(w[:160] for w in why[:3])})" if why else "", self.fallback, quiet)
+        self._warned_at, self._failed_quiet = now, 0
 
     def _count_agreement(self, td: TensorDictBase, own: Tensor, action: Tensor, source: Tensor) -> None:
         """How far the actor's own deterministic action lies from the advice executed in its
@@ -738,7 +793,44 @@ class OverridePolicy(TensorDictModuleBase):
             xs = sorted(lat())
             for name, p in (("latency_p50_s", 0.5), ("latency_p95_s", 0.95)):
                 c[f"advisor/{name}"] = xs[min(len(xs) - 1, int(p * len(xs)))] if xs else float("nan")
+        for what in ("audit", "llm"):  # the student's mean velocity error (m/s) against the LLM
+            rows = c.get(f"advisor/student/{what}_err_rows", 0)
+            if rows:
+                c[f"advisor/student/{what}_err_mps"] = c[f"advisor/student/{what}_err_sum"] / rows
         return c
+
+    def cost(self) -> dict[str, float]:
+        """What the run's advice cost, for an advisor that asks an LLM (else empty): triggered
+        rows; rows executed from the LLM's answer, from the student's, from a held answer, by
+        the fallback, and left to the actor by the call budget; the rows sent to the LLM, its
+        HTTP calls (retries included) and cache hits; tokens in (of them served from the
+        server's prompt cache) and out; seconds the LLM spent answering (the answered calls'
+        latencies summed) and seconds the loop waited for answers after the work it did
+        meanwhile; and, for an endpoint with a price (``llm.price_*_per_mtok``), the money
+        (``money``, in ``llm.price_currency``; NaN without a price)."""
+        price = getattr(self.advisor, "price", None)
+        if price is None:
+            return {}
+        t = self.run_totals()
+        tin, tcached, tout = (float(t.get(f"advisor/{k}", 0.0)) for k in
+                              ("prompt_tokens", "cached_prompt_tokens", "completion_tokens"))
+        out = {"triggered": t["triggered"], "rows_llm": t["source/llm"], "rows_student": t["source/student"],
+               "rows_held": t["held"], "rows_fallback": t["source/fallback"], "rows_actor": t["budget_skipped"],
+               "llm_requests": float(t.get("advisor/requests", 0.0)), "llm_calls": float(t.get("advisor/calls", 0.0)),
+               "llm_cache_hits": float(t.get("advisor/cache_hits", 0.0)),
+               "tokens_in": tin, "tokens_in_cached": tcached, "tokens_out": tout,
+               "llm_s": float(t.get("advisor/call_s", 0.0)), "wait_s": float(t.get("advice_wait_s", 0.0)),
+               "money": math.nan}
+        p = price()
+        if p is not None:  # Eq.: (uncached in * p_in + cached in * p_cached + out * p_out) / 1e6
+            p_in, p_cached, p_out, _ = p
+            out["money"] = ((tin - tcached) * p_in + tcached * p_cached + tout * p_out) / 1e6
+        return out
+
+    def currency(self) -> str | None:
+        price = getattr(self.advisor, "price", None)
+        p = price() if price is not None else None
+        return None if p is None else p[3]
 
     # ------------------------------------------------------------------ state
     def get_extra_state(self) -> dict[str, Any]:
