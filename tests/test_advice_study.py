@@ -148,7 +148,13 @@ def test_records_restore_and_reuse_on_real_runs(tmp_path, monkeypatch):
               "algo.clone_decay_frames=128", "advisor.phase_out_frames=64", "experiment.method=sac_heuristic_w0.4")]
     for cell in cells:
         run(_cfg(*common, *cell))
+    # a run resumed by its absolute folder records that folder: the kept copy must not name it
+    recorded = root / "aid_override" / "sac" / "seed0" / "config.json"
+    as_run = json.loads(recorded.read_text())
+    recorded.write_text(json.dumps({**as_run, "run_dir": str(recorded.parent.resolve())}))
     counts = write_records(root, out)
+    kept = json.loads((out / "runs" / "aid_override" / "sac" / "seed0" / "config.json").read_text())
+    assert kept["run_dir"] == "runs/advice/aid_override/sac/seed0"
     assert counts["runs"] == 2 and counts["unfinished"] == 0
     assert counts["episodes"] == 2 * 3 + 2 * 4  # 2 scenarios; plain SAC has no with-advisor evaluation
     runs = {r["method"]: r for r in csv.DictReader((out / "runs.csv").open())}

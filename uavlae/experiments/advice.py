@@ -35,7 +35,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from uavlae.files import atomic_write, train_eval_dir
+from uavlae.files import atomic_write, portable, train_eval_dir
 
 EPISODE_COLUMNS = ("data_collected", "data_total", "collided", "landed", "rz_speeding", "energy_used", "energy_total",
                    "boundary_exit", "length")
@@ -192,6 +192,15 @@ def _merged(old: list[dict[str, Any]], new: list[dict[str, Any]], fresh: set) ->
     return [r for r in old if _key(r) not in fresh] + new
 
 
+def checkout_of(path: Path) -> Path:
+    """The checkout (a folder holding ``.git``, a worktree's file included) that ``path`` lies in;
+    the working folder if none: what the kept files' paths are written relative to."""
+    for d in (path.resolve(), *path.resolve().parents):
+        if (d / ".git").exists():
+            return d
+    return Path.cwd()
+
+
 def write_records(root: Path, out: Path) -> dict[str, int]:
     """Adds the finished runs under ``root`` to the records in ``out`` (a run recorded before and
     collected again is replaced; the records of runs not under ``root`` are kept)."""
@@ -200,9 +209,11 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
     runs = _merged(_read_rows(out / "runs.csv"), new_runs, fresh)
     episodes = _merged(_read_rows(out / "episodes.csv"), episodes, fresh)
     curves = _merged(_read_rows(out / "curves.csv"), curves, fresh)
+    checkout = checkout_of(root)
     for run in new_runs:
         for name in KEPT_FILES:
-            data = (root / run["path"] / name).read_bytes()
+            # a resumed run may record its folder absolute: committed records name no machine's folder
+            data = portable((root / run["path"] / name).read_text(encoding="utf-8"), checkout).encode()
             target = out / "runs" / run["path"] / name
             target.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(target, lambda fh, data=data: fh.write(data))
