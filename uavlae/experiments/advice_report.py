@@ -437,7 +437,7 @@ def compute_lines(rec: Records) -> list[str]:
     dirty = sum(1 for r in rec.runs if r.get("dirty") == "True")
     return [
         f"- Finished runs: {len(rec.runs)}, {frames:,} training frames, {wall / 3600:.1f} h of training wall clock "
-        f"(evaluations not counted), one run at a time on one core of: {'; '.join(machines) or 'not recorded'}.",
+        f"(evaluations not counted), each run on one core (one or two side by side) of: {'; '.join(machines) or 'not recorded'}.",
         f"- Code: commit {', '.join(commits)}" + (f" ({dirty} runs with uncommitted changes)" if dirty else " (clean)") + ".",
         f"- LLM HTTP calls over the study: {int(llm_calls):,}.",
         "- Disk: a finished run keeps its networks and records, not its replay buffer (a few MB); a run in flight holds "
