@@ -352,6 +352,17 @@ def findings(rec: Records) -> list[str]:
     return lines
 
 
+def _save(fig: Any, out: Path, stem: str) -> list[str]:
+    """``fig`` as ``stem``.png and .pdf (the pdf without a creation date, so a rerun on the same
+    records writes the same bytes); the names written."""
+    names = []
+    for ext in ("png", "pdf"):
+        path = out / f"{stem}.{ext}"
+        fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
+        names.append(path.name)
+    return names
+
+
 def figures(rec: Records, out: Path) -> list[str]:
     import matplotlib
 
@@ -381,10 +392,7 @@ def figures(rec: Records, out: Path) -> list[str]:
         axes[0].legend(loc="lower right", fontsize=8)
         fig.suptitle(WORLDS[world])
         fig.tight_layout()
-        for ext in ("png", "pdf"):
-            path = out / f"cells_{world}.{ext}"
-            fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
-            made.append(path.name)
+        made += _save(fig, out, f"cells_{world}")
         plt.close(fig)
         # curves: the actor alone's DCR during training, and the trigger rate
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
@@ -406,10 +414,7 @@ def figures(rec: Records, out: Path) -> list[str]:
             axes[1].legend(fontsize=7)
         fig.suptitle(WORLDS[world])
         fig.tight_layout()
-        for ext in ("png", "pdf"):
-            path = out / f"curves_{world}.{ext}"
-            fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
-            made.append(path.name)
+        made += _save(fig, out, f"curves_{world}")
         plt.close(fig)
     return made
 
