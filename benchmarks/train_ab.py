@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -113,6 +114,27 @@ def bootstrap_median(xs: list[float], n: int = 5000, seed: int = 0) -> tuple[flo
     return meds[int(0.025 * n)], meds[int(0.975 * n) - 1]
 
 
+def alternate(rounds: int, base: Path, measure: Callable[[Path], Any], label: str,
+              rate: Callable[[Any], float], unit: str) -> dict[str, list[Any]]:
+    """``measure`` in this checkout and in ``base``, ``rounds`` times, in opposite order from round
+    to round so both sides see the same machine; each side's measurements."""
+    got: dict[str, list[Any]] = {"ours": [], "base": []}
+    for r in range(rounds):
+        order = (("ours", ROOT), ("base", base)) if r % 2 == 0 else (("base", base), ("ours", ROOT))
+        for side, where in order:
+            got[side].append(measure(where))
+        print(f"{label} round {r}: ours {rate(got['ours'][-1]):.1f} base {rate(got['base'][-1]):.1f} {unit}", flush=True)
+    return got
+
+
+def paired(ours: list[float], theirs: list[float], label: str) -> dict[str, Any]:
+    """The paired ratios (ours / base), their median and its 95% bootstrap interval."""
+    ratios = [o / t for o, t in zip(ours, theirs)]
+    lo, hi = bootstrap_median(ratios)
+    print(f"{label}: median ratio {statistics.median(ratios):.3f} [{lo:.3f}, {hi:.3f}]", flush=True)
+    return {"ratios": ratios, "median_ratio": statistics.median(ratios), "ratio_ci95": [lo, hi]}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--base", type=Path, required=True)
@@ -129,36 +151,18 @@ def main(argv: list[str] | None = None) -> None:
     results = []
     for exp in a.exps:
         for b in a.env_batch:
-            ours, theirs, seconds = [], [], {"ours": [], "base": []}
-            for r in range(a.rounds):
-                order = (("ours", ROOT), ("base", base)) if r % 2 == 0 else (("base", base), ("ours", ROOT))
-                got = {side: one_run(where, exp, b, a.frames) for side, where in order}
-                ours.append(got["ours"]["fps"])
-                theirs.append(got["base"]["fps"])
-                for side in seconds:
-                    seconds[side].append({k: got[side][k] for k in ("train_s", "update_s")})
-                print(f"{exp} B={b} round {r}: ours {ours[-1]:.1f} base {theirs[-1]:.1f} frames/s", flush=True)
-            ratios = [o / t for o, t in zip(ours, theirs)]
-            lo, hi = bootstrap_median(ratios)
+            runs = alternate(a.rounds, base, lambda where, exp=exp, b=b: one_run(where, exp, b, a.frames),
+                             f"{exp} B={b}", lambda got: got["fps"], "frames/s")
+            ours, theirs = ([run["fps"] for run in runs[side]] for side in ("ours", "base"))
+            seconds = {side: [{k: run[k] for k in ("train_s", "update_s")} for run in runs[side]] for side in runs}
             results.append({"exp": exp, "env_batch": b, "frames": a.frames, "ours_fps": ours, "base_fps": theirs,
-                            "ratios": ratios, "median_ratio": statistics.median(ratios), "ratio_ci95": [lo, hi],
-                            "seconds": seconds})
-            print(f"{exp} B={b}: median ratio {statistics.median(ratios):.3f} [{lo:.3f}, {hi:.3f}]", flush=True)
+                            **paired(ours, theirs, f"{exp} B={b}"), "seconds": seconds})
     update_only = None
     if a.update_steps:
-        ours, theirs = [], []
-        for r in range(a.rounds):
-            order = (("ours", ROOT), ("base", base)) if r % 2 == 0 else (("base", base), ("ours", ROOT))
-            got = {side: one_update_run(where, a.update_steps) for side, where in order}
-            ours.append(got["ours"])
-            theirs.append(got["base"])
-            print(f"update alone round {r}: ours {got['ours']:.1f} base {got['base']:.1f} updates/s", flush=True)
-        ratios = [o / t for o, t in zip(ours, theirs)]
-        update_only = {"steps": a.update_steps, "ours_updates_per_s": ours, "base_updates_per_s": theirs,
-                       "ratios": ratios, "median_ratio": statistics.median(ratios),
-                       "ratio_ci95": list(bootstrap_median(ratios))}
-        print(f"update alone: median ratio {update_only['median_ratio']:.3f} "
-              f"[{update_only['ratio_ci95'][0]:.3f}, {update_only['ratio_ci95'][1]:.3f}]", flush=True)
+        runs = alternate(a.rounds, base, lambda where: one_update_run(where, a.update_steps), "update alone",
+                         lambda got: got, "updates/s")
+        update_only = {"steps": a.update_steps, "ours_updates_per_s": runs["ours"],
+                       "base_updates_per_s": runs["base"], **paired(runs["ours"], runs["base"], "update alone")}
     command = (f"python benchmarks/train_ab.py --base <a checkout of {base.name}> --exps {' '.join(a.exps)} "
                f"--env-batch {' '.join(map(str, a.env_batch))} --rounds {a.rounds} --frames {a.frames} --update-steps {a.update_steps}")
     report = {"command": command,
