@@ -6,7 +6,7 @@ trigger, at the same settings, side by side in one run.
     python benchmarks/amortize.py --quick --checkpoint-every 50000              (make amortize-quick: 400k frames, B = 64)
 
 Trains, in this process and one after another, each seed's methods: ``sac`` (``+exp=sac``),
-``amortized`` (``+exp=sac_llm advisor.amortize=true``) and ``every`` (``+exp=sac_llm``: the LLM
+``amortized`` (``+exp=sac_llm_amortized``: the student at its stated budget) and ``every`` (``+exp=sac_llm``: the LLM
 at every trigger, the paper's method, no call budget), with the quick profile's world and
 learner (``+profile=quick``: env shaped_geodesic, 0.25 gradient steps a frame) at ``--frames``
 and B = ``--batch``, the env not compiled (the LLM runs' setting in the Makefile), no evaluation
@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 
 from uavlae.files import portable  # noqa: E402
 
-METHODS = {"sac": ["+exp=sac"], "amortized": ["+exp=sac_llm", "advisor.amortize=true"], "every": ["+exp=sac_llm"]}
+METHODS = {"sac": ["+exp=sac"], "amortized": ["+exp=sac_llm_amortized"], "every": ["+exp=sac_llm"]}
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 
 
@@ -82,7 +82,9 @@ def train(method: str, seed: int, run_dir: Path, args: argparse.Namespace, llm: 
     row = {"method": method, "seed": seed, "run_dir": portable(str(run_dir), ROOT),
            "overrides": [o for o in overrides if not o.startswith(("run_dir=", "llm.cache_path=", "llm.base_url="))],
            "frames": s["frames"], "updates": s["updates"], "train_s": round(s["train_s"], 1),
-           "frames_per_s": round(s["frames"] / s["train_s"], 1), "wall_s_with_eval": round(wall, 1),
+           "frames_per_s": round(s["frames"] / s["train_s"], 1),
+           "wall_s": final.get("wall_s"),  # the training loop's, over every resumed part
+           "this_part_s_with_eval": round(wall, 1),
            "eval": {k: final.get(f"eval/{k}") for k in METRICS}}
     ov, cost = s.get("override"), s.get("cost")
     if ov:
@@ -139,23 +141,21 @@ def main() -> None:
 
     from omegaconf import OmegaConf
 
-    from uavlae.factories import git_info
+    from uavlae.factories import CONF_DIR, git_info
     from uavlae.files import dump_json
     from uavlae.llm.config import ServerConfig
     from uavlae.llm.server import local_server
     from uavlae.machine import describe_machine
 
     root = Path(args.root) / f"f{args.frames}_b{args.batch}"
-    server_cfg = ServerConfig(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "llm" / "local.yaml").server))
+    server_cfg = ServerConfig(**OmegaConf.to_container(OmegaConf.load(CONF_DIR / "llm" / "local.yaml").server))
     runs: list[dict] = []
     t0 = time.perf_counter()
     with local_server(server_cfg) as srv:
         server_start_s = time.perf_counter() - t0
         for seed in args.seeds:
             for method in args.methods:
-                run_dir = root / f"{method}_seed{seed}"
-                if run_dir.exists():
-                    raise SystemExit(f"{run_dir} exists: remove it or pick another --root")
+                run_dir = root / f"{method}_seed{seed}"  # an existing one resumes, or is read back when done
                 llm = [f"llm.base_url={srv.base_url}", f"llm.cache_path={run_dir / 'llm_cache.sqlite'}",
                        "llm.cache_mode=read_write"]
                 runs.append(train(method, seed, run_dir, args, llm))

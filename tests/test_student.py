@@ -218,6 +218,20 @@ def test_max_llm_share_spends_a_credit_earned_per_triggered_row_on_the_least_sur
     assert len(llm.asked) == 8 + 4 * 2 and adv.credit == 0.0
 
 
+def test_share_allowance_is_spent_first_then_the_share_accrues():
+    """A share of 1/4 with 4 rows of allowance, a student never sure, 8 rows a slot: after the
+    8-row warm-up, slot 2 has 4 + 8/4 = 6 rows of credit, then each slot earns and spends 2.
+    With 16 rows a slot, an allowance of 20 above a burst of 16 earns nothing until spent below
+    it: slot 2 asks 16 (4 left), slot 3 has 4 + 16/4 = 8, slot 4 has 0 + 4."""
+    never_sure = {"min_answers": 8, "unsure": 1e-9, "novel_min": 0, "audit_fraction": 0.0, "max_llm_share": 0.25}
+    env, llm, adv, pol = policy({**never_sure, "share_allowance": 4})
+    src, _ = fly(env, pol, 4)
+    assert (src == LLM).sum(-1).tolist() == [8, 6, 2, 2] and adv.credit == 0.0
+    env, llm, adv, pol = policy({**never_sure, "share_allowance": 20, "share_burst": 16}, B=16)
+    src, _ = fly(env, pol, 4)
+    assert (src == LLM).sum(-1).tolist() == [16, 16, 8, 4] and adv.credit == 0.0
+
+
 def test_a_failed_llm_row_takes_the_fallback_and_an_outage_stops_the_step():
     env, llm, adv, pol = policy({"min_answers": 8})
     td = env.reset()

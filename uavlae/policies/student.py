@@ -17,7 +17,8 @@ is sure of; the LLM answers the rest. Per triggered row, the LLM is asked when
 and never once ``max_llm_rows`` rows have been asked in the run (then the student answers
 every row). With ``max_llm_share`` the unsure and novel rows are asked only while the LLM's share
 of the triggered rows stays under it (a credit earned per triggered row), novel and least sure
-first: a spending rate, where ``max_llm_rows`` is a total. The LLM's answer is executed on the
+first: a spending rate, where ``max_llm_rows`` is a total; ``share_allowance`` rows of credit
+are there from the start, so the student asks freely while it knows least, then at the rate. The LLM's answer is executed on the
 rows it answers (``action_source`` LLM), the student's mean on the others (``action_source``
 STUDENT).
 
@@ -82,6 +83,10 @@ class StudentConfig(StrictModel):
     # lasts. Audits are always asked (they spend credit too), so the share is max(this, audit_fraction)
     max_llm_share: float | None = Field(None, gt=0, le=1)
     share_burst: float = Field(64.0, ge=1)
+    # rows of credit the share starts with (used with max_llm_share): what the student may ask
+    # beyond the rate early on, while it knows least; above share_burst no credit accrues until
+    # the allowance is spent below it
+    share_allowance: int = Field(0, ge=0)
     near_m: float = Field(10.0, gt=0)  # length scale of the near-field feature exp(-d / near_m)
     close_m: float = Field(5.0, gt=0)  # a situation's distance bands: inside, within close_m, beyond
 
@@ -351,7 +356,7 @@ class AmortizedAdvisor:
         self.student = Student(self.cfg, seed=seed)
         self.audit_generator = torch.Generator().manual_seed(int(seed) + 1)
         self.llm_rows = 0  # rows sent to the LLM in the run (max_llm_rows)
-        self.credit = 0.0  # rows the LLM may still answer under max_llm_share
+        self.credit = float(self.cfg.share_allowance)  # rows the LLM may still answer under max_llm_share
         self.reset_counts()
 
     source = LLM  # result() gives each row's own source: LLM or STUDENT
@@ -403,7 +408,8 @@ class AmortizedAdvisor:
         (novel first, then the least sure) while the credit lasts."""
         c = self.cfg
         n = spread.shape[0]
-        self.credit = min(self.credit + c.max_llm_share * n, c.share_burst)
+        # accrue up to the burst; a larger credit (the allowance) is spent before any accrues
+        self.credit = max(min(self.credit + c.max_llm_share * n, c.share_burst), self.credit)
         audit, want = reasons[3], (reasons[1] | reasons[2]) & ~reasons[3]
         ask = audit.clone()
         room = int(math.floor(self.credit - int(audit.sum())))
