@@ -110,10 +110,10 @@ bench-amortize: $(STAMP)
 # 20% of 12k frames triggered; several hours here) -> benchmarks/amortize.json
 bench-amortize-outcome: $(STAMP)
 	$(BIN)/python benchmarks/amortize.py --methods sac every amortized --seeds 0 1 --frames 12000 --batch 16
-# The quick profile's size, no call budget: 400k frames, B = 64, SAC beside SAC+LLM with the student (a
-# day or more of one core here; resumable only run by run: it stops if a run folder exists)
+# The quick profile's size, no max_calls: 400k frames, B = 64, SAC beside +exp=sac_llm_amortized (the
+# student at its stated budget; about 1.5 h of one core here; run again, it resumes where it stopped)
 amortize-quick: $(STAMP)
-	$(BIN)/python benchmarks/amortize.py --quick --checkpoint-every 50000
+	$(BIN)/python benchmarks/amortize.py --quick --checkpoint-every 25000
 
 # Answered calls/s of any OpenAI-compatible endpoint at 1, 8 and 64 requests in flight (the local server
 # by default; e.g. SERVING_ARGS="--llm openai_compatible --set base_url=http://gpu-box:8000/v1 model=NAME")
