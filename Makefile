@@ -106,10 +106,13 @@ AMORTIZE_ARGS ?= --frames 20000 --batch 16
 bench-amortize: $(STAMP)
 	$(BIN)/python benchmarks/amortize.py --methods sac amortized $(AMORTIZE_ARGS)
 # Does the outcome depend on amortization? The LLM at every trigger (the paper's method) beside the
-# student, 2 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16: about
-# 20% of 12k frames triggered; several hours here) -> benchmarks/amortize.json
+# student, 2 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16,
+# 12k frames). The student's allowance is cut to 200 rows so that it, not the LLM, answers most rows
+# of so short a run. OUTCOME_SEEDS="0" and "1" may run as two processes, one a core -> amortize.json
+OUTCOME_SEEDS ?= 0 1
 bench-amortize-outcome: $(STAMP)
-	$(BIN)/python benchmarks/amortize.py --methods sac every amortized --seeds 0 1 --frames 12000 --batch 16
+	$(BIN)/python benchmarks/amortize.py --methods sac every amortized --seeds $(OUTCOME_SEEDS) --frames 12000 \
+		--batch 16 --amortized-extra 'advisor.student.share_allowance=200' --root runs/bench_amortize_outcome
 # The quick profile's size, no max_calls: 400k frames, B = 64, SAC beside +exp=sac_llm_amortized (the
 # student at its stated budget; about 1.5 h of one core here; run again, it resumes where it stopped)
 amortize-quick: $(STAMP)

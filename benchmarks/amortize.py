@@ -72,7 +72,8 @@ def train(method: str, seed: int, run_dir: Path, args: argparse.Namespace, llm: 
                  f"trainer.checkpoint_every_frames={args.checkpoint_every}", "trainer.progress_bar=false",
                  "trainer.baselines=false", "logger.wandb.mode=disabled",
                  f"trainer.eval_with_advisor={str(args.eval_with_advisor).lower()}", *shlex.split(args.extra),
-                 *([*llm, *shlex.split(args.llm_extra)] if method != "sac" else [])]
+                 *([*llm, *shlex.split(args.llm_extra)] if method != "sac" else []),
+                 *(shlex.split(args.amortized_extra) if method == "amortized" else [])]
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
     t0 = time.perf_counter()
@@ -127,7 +128,9 @@ def main() -> None:
     ap.add_argument("--eval-with-advisor", action="store_true",
                     help="also fly the LLM runs' actors with their advisor at the end (full episodes: many LLM calls)")
     ap.add_argument("--extra", default="", help="overrides of every run (quoted)")
-    ap.add_argument("--llm-extra", default="", help="overrides of the LLM runs (quoted), e.g. 'advisor.student.unsure=0.2'")
+    ap.add_argument("--llm-extra", default="", help="overrides of the LLM runs (quoted), e.g. 'llm.observation=verbose'")
+    ap.add_argument("--amortized-extra", default="", help="overrides of the amortized runs only (quoted), "
+                                                          "e.g. 'advisor.student.share_allowance=200'")
     ap.add_argument("--root", default=str(ROOT / "runs" / "bench_amortize"))
     ap.add_argument("--note", default="")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "amortize.json"))
