@@ -402,7 +402,6 @@ ADVICE_SEEDS ?= 0,1,2,3,4
 ADVICE_FEW_SEEDS ?= 0,1,2
 ADVICE_TUNE_SEEDS ?= 100,101
 ADVICE_TUNE_WEIGHTS ?= 0.1,0.4,1.6
-ADVICE_LLM_CALLS ?= 3000
 ADVICE_LLM_EVAL_CALLS ?= 500
 ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_EXP_ROOT) hydra/launcher=local \
 	hydra.launcher.n_jobs=$(ADVICE_JOBS)
@@ -436,10 +435,10 @@ advice-spec: $(STAMP)
 		env.ego_features=false experiment.method=sac_progress_only
 # the local LLM at the budget it affords here (advisor.max_calls rows a run; the report gives the advised fraction)
 advice-llm: $(STAMP)
-	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac_llm seed=$(ADVICE_FEW_SEEDS) \
-		advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
-	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach +exp=sac_llm \
-		seed=$(ADVICE_FEW_SEEDS) advisor.max_calls=$(ADVICE_LLM_CALLS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
+	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac_llm_amortized seed=$(ADVICE_FEW_SEEDS) \
+		trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
+	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
+		+exp=sac_llm_amortized seed=$(ADVICE_FEW_SEEDS) trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)
 advice-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.advice records $(ADVICE_ROOT) --out results/advice
 advice-report: $(STAMP)

@@ -93,15 +93,22 @@ def _write(path, rows):
 def test_report_from_records_alone(tmp_path):
     """Plain SAC neither collects nor lands; SAC+Heuristic (teach) collects everything and lands
     in both scenarios, on seeds 0 and 1: the differences are 1 whatever the resample, it beats
-    plain SAC in every pair (P = 1), and it learned (random never collects); plain SAC did not."""
+    plain SAC in every pair (P = 1), and it learned (random never collects); plain SAC did not.
+    The LLM through the student answered 20 and 40 rows of 100 on its two seeds: 30% of the
+    advised rows on average."""
     eps, runs = [], []
-    for method, transfer, landed in (("sac", "override", (0, 0)), ("sac_heuristic", "teach", (1, 1))):
+    for method, transfer, landed in (("sac", "override", (0, 0)), ("sac_heuristic", "teach", (1, 1)),
+                                     ("sac_llm_amortized", "override", (1, 0))):
         for seed in (0, 1):
             runs.append({"world": "aid", "transfer": transfer, "method": method, "seed": seed, "sweep": "advice",
-                         "frames": 1000, "wall_s": 10.0, "advisor": "none" if method == "sac" else "heuristic/greedy",
+                         "frames": 1000, "wall_s": 10.0, "advisor": {"sac": "none", "sac_heuristic": "heuristic/greedy",
+                                                                    "sac_llm_amortized": "llm"}[method],
                          "clone_weight": 0.4, "commit": "abc", "dirty": "False", "machine": "cpu, 2 cores",
                          "override/advised_fraction": "" if method == "sac" else 0.25,
-                         "override/trigger_rate": "" if method == "sac" else 0.3})
+                         "override/trigger_rate": "" if method == "sac" else 0.3,
+                         "amortize": str(method == "sac_llm_amortized"),
+                         "override/source/llm": 20 + 20 * seed if method == "sac_llm_amortized" else "",
+                         "override/source/student": 80 - 20 * seed if method == "sac_llm_amortized" else ""})
             for ev, land in (("alone", landed), ("random", (0, 0))):
                 for n in (0, 1):
                     eps.append({"world": "aid", "transfer": transfer, "method": method, "seed": seed, "sweep": "advice",
@@ -118,6 +125,10 @@ def test_report_from_records_alone(tmp_path):
     learned = [line for line in text.splitlines() if line.startswith("| sac_heuristic / teach | 1.000")]
     assert learned and learned[-1].endswith("| yes |")
     assert [line for line in text.splitlines() if line.startswith("| sac / override | 0.000")][-1].endswith("| no |")
+    assert [line for line in text.splitlines() if line.startswith("| sac_llm_amortized / override | 0.250")
+            ][0].endswith("| student; LLM 30.0% of advised rows |")
+    assert [line for line in text.splitlines() if line.startswith("| sac_heuristic / teach | 0.250")
+            ][0].endswith("| none |")
     first = text
     build(tmp_path)
     assert (tmp_path / "report.md").read_text() == first  # the same records, the same report

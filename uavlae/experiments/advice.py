@@ -40,7 +40,7 @@ from uavlae.files import atomic_write, portable, train_eval_dir
 EPISODE_COLUMNS = ("data_collected", "data_total", "collided", "landed", "rz_speeding", "energy_used", "energy_total",
                    "boundary_exit", "length")
 RUN_COUNTERS = ("advised_fraction", "trigger_rate", "actor_gap", "actor_agree", "triggered", "advised",
-                "budget_skipped", "frames", "source/fallback")
+                "budget_skipped", "frames", "source/fallback", "source/llm", "source/student")
 # what the training curves keep: (scalar file under logs/scalars, column name)
 CURVE_SCALARS = (("eval/DCR", "DCR"), ("eval/SLR", "SLR"), ("eval/CR", "CR"), ("eval/RVR", "RVR"),
                  ("override/trigger_rate", "trigger_rate"), ("override/advised_fraction", "advised_fraction"),
@@ -130,7 +130,7 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     run = {**key, "frames": frames, "wall_s": final.get("wall_s"), "updates": final.get("updates"),
            "advisor": cfg["advisor"]["kind"] + ("/" + cfg["heuristic_kind"] if cfg["advisor"]["kind"] == "heuristic" else ""),
            "clone_weight": cfg["algo"].get("clone_weight", 0.0), "phase_out_frames": cfg["advisor"].get("phase_out_frames"),
-           "max_calls": cfg["advisor"].get("max_calls"),
+           "max_calls": cfg["advisor"].get("max_calls"), "amortize": bool(cfg["advisor"].get("amortize", False)),
            "commit": str(git.get("commit") or "")[:10], "dirty": git.get("dirty"),
            "machine": f"{machine.get('cpu', '')}, {machine.get('logical_cores', '?')} cores" if machine else "",
            "path": str(d.name)}

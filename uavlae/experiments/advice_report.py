@@ -40,6 +40,7 @@ TRANSFERS = {"override": "the paper's override", "teach": "override + cloning + 
              "tune": "tuning (seeds apart)"}
 ADVISORS = {"sac": "none", "sac_heuristic": "greedy heuristic", "sac_heuristic_planner": "planner", "sac_hover": "hover",
             "sac_random_advice": "uniform random", "sac_llm": "local LLM (SmolLM2-135M)",
+            "sac_llm_amortized": "local LLM (SmolLM2-135M) through the student",
             "sac_ego_only": "none (ego-centric columns only)", "sac_progress_only": "none (progress reward only)"}
 # the study's design: (world, transfer, method, seeds)
 DESIGN = (
@@ -49,7 +50,8 @@ DESIGN = (
     *[("spec", "override", m, 3) for m in ("sac", "sac_heuristic")],
     ("spec", "teach", "sac_heuristic", 3),
     *[("spec", "aid", m, 3) for m in ("sac_ego_only", "sac_progress_only")],
-    *[("aid", t, "sac_llm", 3) for t in ("override", "teach")],
+    # the LLM at every trigger, through the student at its stated budget (+exp=sac_llm_amortized)
+    *[("aid", t, "sac_llm_amortized", 3) for t in ("override", "teach")],
 )
 
 
@@ -166,6 +168,10 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
             row[f"{metric} with advisor"] = fmt(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
         calls = [r.get("max_calls") for r in runs if r.get("max_calls") not in (None, "", "None")]
         row["advisor budget"] = f"max_calls {calls[0]}" if calls else "none"
+        if any(str(r.get("amortize")) == "True" for r in runs):  # who answered the advised rows
+            llm, student = mean("override/source/llm"), mean("override/source/student")
+            row["advisor budget"] = f"student; LLM {llm / (llm + student):.1%} of advised rows" \
+                if llm + student > 0 else "student"
         rows.append(row)
     return rows
 
@@ -470,8 +476,8 @@ def build(records_dir: Path) -> str:
                                                                     "seeds done", "state"]), "",
           "Tuning seeds (100, 101) are apart from the verdict seeds (0-4). Teach: cloning weight chosen on the tuning "
           "seeds, decayed linearly to 0 over the run; trigger (d_th) annealed to 0 over the first half. The LLM rung "
-          "runs under a call budget (`advisor.max_calls`), so its advised fraction is small: read it beside that "
-          "fraction.", "", "## Compute", "", *compute_lines(rec), ""]
+          "advises every triggered row: the LLM answers the student's warm-up and the rows it is least sure of, at "
+          "`+exp=sac_llm_amortized`'s budget, and the student the rest (the share is in the dependence table).", "", "## Compute", "", *compute_lines(rec), ""]
     if rec.unfinished:
         md += [f"Runs in flight (not in any table): {', '.join(rec.unfinished)}.", ""]
     for world, title in WORLDS.items():
