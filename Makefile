@@ -108,11 +108,14 @@ bench-amortize: $(STAMP)
 # Does the outcome depend on amortization? The LLM at every trigger (the paper's method) beside the
 # student, 2 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16,
 # 12k frames). The student's allowance is cut to 200 rows so that it, not the LLM, answers most rows
-# of so short a run. OUTCOME_SEEDS="0" and "1" may run as two processes, one a core -> amortize.json
+# of so short a run. Then amortized minus every trigger, paired by seed and scenario. OUTCOME_SEEDS=0
+# and =1 may run as two processes, one a core; a last run with both reads their runs back -> amortize.json
 OUTCOME_SEEDS ?= 0 1
+OUTCOME = --frames 12000 --batch 16 --root runs/bench_amortize_outcome --seeds $(OUTCOME_SEEDS)
 bench-amortize-outcome: $(STAMP)
-	$(BIN)/python benchmarks/amortize.py --methods sac every amortized --seeds $(OUTCOME_SEEDS) --frames 12000 \
-		--batch 16 --amortized-extra 'advisor.student.share_allowance=200' --root runs/bench_amortize_outcome
+	$(BIN)/python benchmarks/amortize.py --methods sac every amortized $(OUTCOME) \
+		--amortized-extra 'advisor.student.share_allowance=200'
+	$(BIN)/python benchmarks/amortize.py --compare $(OUTCOME)
 # The quick profile's size, no max_calls: 400k frames, B = 64, SAC beside +exp=sac_llm_amortized (the
 # student at its stated budget; about 1.5 h of one core here; run again, it resumes where it stopped)
 amortize-quick: $(STAMP)

@@ -3,7 +3,9 @@ trigger, at the same settings, side by side in one run.
 
     python benchmarks/amortize.py --frames 20000 --batch 16                    (make bench-amortize)
     python benchmarks/amortize.py --methods sac amortized every --seeds 0 1     (make bench-amortize-outcome)
-    python benchmarks/amortize.py --quick --checkpoint-every 50000              (make amortize-quick: 400k frames, B = 64)
+    python benchmarks/amortize.py --quick --checkpoint-every 25000              (make amortize-quick: 400k frames, B = 64)
+    python benchmarks/amortize.py --compare --seeds 0 1 --frames 12000 --batch 16 --root ROOT
+                                  (no training: amortized minus every trigger on finished runs, paired)
 
 Trains, in this process and one after another, each seed's methods: ``sac`` (``+exp=sac``),
 ``amortized`` (``+exp=sac_llm_amortized``: the student at its stated budget) and ``every`` (``+exp=sac_llm``: the LLM
@@ -115,6 +117,33 @@ def train(method: str, seed: int, run_dir: Path, args: argparse.Namespace, llm: 
     return row
 
 
+def compare(root: Path, seeds: list[int], n_boot: int = 2000) -> dict:
+    """The outcome's dependence on amortization: each method's metrics over ``seeds`` x the 32
+    evaluation scenarios (stratified bootstrap), and amortized minus every trigger, paired by seed
+    and scenario, with rliable's probability of improvement (uavlae.experiments.advice_stats)."""
+    from uavlae.experiments.advice_stats import difference, grid_from_rows, interval, probability_of_improvement
+    from uavlae.files import train_eval_dir
+
+    grids = {}
+    for method in ("sac", "every", "amortized"):
+        rows = []
+        for seed in seeds:
+            d = root / f"{method}_seed{seed}"
+            final = json.loads((d / "final_metrics.json").read_text())
+            with (train_eval_dir(d, int(final["frames"])) / "episodes.csv").open() as fh:
+                rows += [{**r, "seed": seed, "scenario": r["row"]} for r in csv.DictReader(fh)]
+        grids[method] = grid_from_rows(rows)
+    out: dict = {"seeds": seeds, "method": "stratified bootstrap over seeds x scenarios, 95%; P(better): "
+                 "rliable's probability of improvement", "n_boot": n_boot, "metrics": {}, "amortized_minus_every": {}}
+    for m, g in grids.items():
+        out["metrics"][m] = {k: [round(v, 4) for v in interval(g, k, n_boot)] for k in ("DCR", "CR", "SLR")}
+    for k in ("DCR", "CR", "SLR"):
+        out["amortized_minus_every"][k] = {
+            "difference": [round(v, 4) for v in difference(grids["amortized"], grids["every"], k, n_boot)],
+            "p_better": [round(v, 3) for v in probability_of_improvement(grids["amortized"], grids["every"], k, n_boot)]}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--methods", nargs="+", default=["sac", "amortized"], choices=list(METHODS))
@@ -134,6 +163,9 @@ def main() -> None:
     ap.add_argument("--root", default=str(ROOT / "runs" / "bench_amortize"))
     ap.add_argument("--note", default="")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "amortize.json"))
+    ap.add_argument("--compare", action="store_true",
+                    help="no training: read the finished every / amortized / sac runs of --seeds under --root and "
+                         "record amortized minus every trigger, paired (the outcome's dependence on amortization)")
     args = ap.parse_args()
     if args.quick:
         args.frames, args.batch = 400_000, 64
@@ -151,6 +183,21 @@ def main() -> None:
     from uavlae.machine import describe_machine
 
     root = Path(args.root) / f"f{args.frames}_b{args.batch}"
+    if args.compare:
+        result = compare(root, args.seeds)
+        out_path = Path(args.out)
+        out = json.loads(out_path.read_text()) if out_path.is_file() else {"benchmark": "amortize", "measurements": {}}
+        out.setdefault("outcome", {})[f"frames{args.frames}_b{args.batch}_seeds{'+'.join(map(str, args.seeds))}"] = {
+            "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "git": git_info(),
+            "command": "python benchmarks/amortize.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **result}
+        dump_json(out_path, out)
+        for m, v in result["metrics"].items():
+            print(f"{m:>9}: " + "  ".join(f"{k} {p:.3f} [{lo:.3f}, {hi:.3f}]" for k, (p, lo, hi) in v.items()))
+        for k, v in result["amortized_minus_every"].items():
+            (p, lo, hi), (q, qlo, qhi) = v["difference"], v["p_better"]
+            print(f"amortized - every, {k}: {p:+.3f} [{lo:+.3f}, {hi:+.3f}], P(better) {q:.2f} [{qlo:.2f}, {qhi:.2f}]")
+        print(f"wrote {args.out}")
+        return
     server_cfg = ServerConfig(**OmegaConf.to_container(OmegaConf.load(CONF_DIR / "llm" / "local.yaml").server))
     runs: list[dict] = []
     t0 = time.perf_counter()
