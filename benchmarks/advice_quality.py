@@ -239,7 +239,7 @@ def student_answers(state: TensorDict, env_cfg: Any, path: str) -> dict[str, Any
     ckpt, file = load_checkpoint(path)
     adv = (ckpt.get("collector") or {}).get("policy_extra", {}).get("advisor")
     if not isinstance(adv, dict) or "student" not in adv:
-        raise SystemExit(f"{file} holds no student: train with +exp=sac_llm advisor.amortize=true")
+        raise SystemExit(f"{file} holds no student: train with +exp=sac_llm_amortized (or advisor.amortize=true)")
     cfg = make_student_config(ckpt["config"]["advisor"]["student"])
     student = Student(cfg)
     student.load_state_dict(adv["student"])
