@@ -92,9 +92,9 @@ bench-advice: $(STAMP)
 	$(BIN)/python benchmarks/advice_quality.py --n 40 --advisors llm_json_schema llm_verbose_grammar llm_no_example \
 		llm_no_safety llm_no_compliance llm_no_data llm_no_energy
 
-# The student of a run with advisor.amortize (make bench-amortize keeps its runs) as one more advisor
+# The student of a run with advisor.amortize (make amortize-quick keeps its runs) as one more advisor
 # on the same 200 states, compared state by state with the LLM it learned from
-STUDENT_RUN ?= runs/bench_amortize/f20000_b16/amortized_seed0
+STUDENT_RUN ?= runs/bench_amortize/f400000_b64/amortized_seed0
 .PHONY: bench-advice-student
 bench-advice-student: $(STAMP)
 	$(BIN)/python benchmarks/advice_quality.py --advisors student --student $(STUDENT_RUN)
