@@ -106,11 +106,11 @@ AMORTIZE_ARGS ?= --frames 20000 --batch 16
 bench-amortize: $(STAMP)
 	$(BIN)/python benchmarks/amortize.py --methods sac amortized $(AMORTIZE_ARGS)
 # Does the outcome depend on amortization? The LLM at every trigger (the paper's method) beside the
-# student, 2 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16,
+# student, 3 seeds, at a size where the LLM at every trigger stays under about 3,000 calls (B = 16,
 # 12k frames). The student's allowance is cut to 200 rows so that it, not the LLM, answers most rows
 # of so short a run. Then amortized minus every trigger, paired by seed and scenario. OUTCOME_SEEDS=0
 # and =1 may run as two processes, one a core; a last run with both reads their runs back -> amortize.json
-OUTCOME_SEEDS ?= 0 1
+OUTCOME_SEEDS ?= 0 1 2
 OUTCOME = --frames 12000 --batch 16 --root runs/bench_amortize_outcome --seeds $(OUTCOME_SEEDS)
 bench-amortize-outcome: $(STAMP)
 	$(BIN)/python benchmarks/amortize.py --methods sac every amortized $(OUTCOME) \
