@@ -144,6 +144,15 @@ def compare(root: Path, seeds: list[int], n_boot: int = 2000) -> dict:
     return out
 
 
+def record(path: Path, section: str, key: str, entry: dict) -> None:
+    """``entry`` under ``section`` / ``key`` of the result file, the other entries kept."""
+    from uavlae.files import dump_json
+
+    out = json.loads(path.read_text()) if path.is_file() else {"benchmark": "amortize", "measurements": {}}
+    out.setdefault(section, {})[key] = entry
+    dump_json(path, out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--methods", nargs="+", default=["sac", "amortized"], choices=list(METHODS))
@@ -177,7 +186,6 @@ def main() -> None:
     from omegaconf import OmegaConf
 
     from uavlae.factories import CONF_DIR, git_info
-    from uavlae.files import dump_json
     from uavlae.llm.config import ServerConfig
     from uavlae.llm.server import local_server
     from uavlae.machine import describe_machine
@@ -185,12 +193,9 @@ def main() -> None:
     root = Path(args.root) / f"f{args.frames}_b{args.batch}"
     if args.compare:
         result = compare(root, args.seeds)
-        out_path = Path(args.out)
-        out = json.loads(out_path.read_text()) if out_path.is_file() else {"benchmark": "amortize", "measurements": {}}
-        out.setdefault("outcome", {})[f"frames{args.frames}_b{args.batch}_seeds{'+'.join(map(str, args.seeds))}"] = {
+        record(Path(args.out), "outcome", f"frames{args.frames}_b{args.batch}_seeds{'+'.join(map(str, args.seeds))}", {
             "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "git": git_info(),
-            "command": "python benchmarks/amortize.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **result}
-        dump_json(out_path, out)
+            "command": "python benchmarks/amortize.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **result})
         for m, v in result["metrics"].items():
             print(f"{m:>9}: " + "  ".join(f"{k} {p:.3f} [{lo:.3f}, {hi:.3f}]" for k, (p, lo, hi) in v.items()))
         for k, v in result["amortized_minus_every"].items():
@@ -219,11 +224,8 @@ def main() -> None:
         "llm_server": server_cfg.model_dump(), "server_start_s": round(server_start_s, 1), "runs": runs,
     }
     # one result file: each measurement (size x methods x seeds) under its own key, the latest kept
-    out_path = Path(args.out)
-    out = json.loads(out_path.read_text()) if out_path.is_file() else {"benchmark": "amortize", "measurements": {}}
-    key = f"frames{args.frames}_b{args.batch}_{'+'.join(args.methods)}_seeds{'+'.join(map(str, args.seeds))}"
-    out["measurements"][key] = entry
-    dump_json(out_path, out)
+    record(Path(args.out), "measurements",
+           f"frames{args.frames}_b{args.batch}_{'+'.join(args.methods)}_seeds{'+'.join(map(str, args.seeds))}", entry)
     for r in runs:
         print(f"{r['method']:>9} seed {r['seed']}: {r['train_s']:.0f} s ({r['train_s_over_sac']}x sac), "
               + (f"{r['triggered']} triggered, LLM {r['llm_rows']} ({100 * r['llm_share_of_triggered']:.1f}%), "
