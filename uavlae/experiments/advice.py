@@ -41,6 +41,8 @@ EPISODE_COLUMNS = ("data_collected", "data_total", "collided", "landed", "rz_spe
                    "boundary_exit", "length")
 RUN_COUNTERS = ("advised_fraction", "trigger_rate", "actor_gap", "actor_agree", "triggered", "advised",
                 "budget_skipped", "frames", "source/fallback", "source/llm", "source/student")
+# the LLM's cost that a run's final metrics carry (uavlae.llm's accounting), kept per run
+COST_KEYS = ("rows_llm", "rows_student", "tokens_in", "tokens_out", "wait_s")
 # what the training curves keep: (scalar file under logs/scalars, column name)
 CURVE_SCALARS = (("eval/DCR", "DCR"), ("eval/SLR", "SLR"), ("eval/CR", "CR"), ("eval/RVR", "RVR"),
                  ("override/trigger_rate", "trigger_rate"), ("override/advised_fraction", "advised_fraction"),
@@ -139,6 +141,9 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
         run[f"advised/override/{k}"] = final.get(f"advised/override/{k}")
     for k in ("advisor/calls", "advisor/prompt_tokens", "advisor/completion_tokens"):
         run[f"override/{k}"] = final.get(f"override/{k}")
+    for k in COST_KEYS:  # what the LLM cost, in runs that asked it
+        if f"cost/{k}" in final:
+            run[f"cost/{k}"] = final[f"cost/{k}"]
     episodes = []
     sources = {"alone": train_eval_dir(d, frames), "with_advisor": d / "eval" / "with_advisor",
                "heuristic": d / "eval" / "baseline_heuristic", "random": d / "eval" / "baseline_random"}

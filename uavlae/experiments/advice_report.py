@@ -226,6 +226,39 @@ def learned_table(rec: Records, world: str) -> list[dict[str, Any]]:
     return rows
 
 
+def _mean(runs: list[dict[str, str]], key: str) -> float:
+    xs = [_num(r.get(key)) for r in runs]
+    xs = [x for x in xs if math.isfinite(x)]
+    return sum(xs) / len(xs) if xs else math.nan
+
+
+def wall_ratio(rec: Records, world: str, transfer: str, method: str) -> float:
+    """A cell's mean training wall clock per run over plain SAC's in the same world."""
+    base = _mean(rec.run_rows(world, "override", "sac"), "wall_s")
+    return _mean(rec.run_rows(world, transfer, method), "wall_s") / base if base > 0 else math.nan
+
+
+def cost_table(rec: Records, world: str) -> list[dict[str, Any]]:
+    """Per cell, means per run: the training wall clock (and its ratio to plain SAC's), the rows
+    an advisor answered, and for the LLM the rows it answered, the tokens and the time waited."""
+    rows = []
+    for w, t, m in (c for c in rec.cells() if c[0] == world):
+        runs = rec.run_rows(w, t, m)
+        if not runs:
+            continue
+        llm = _mean(runs, "cost/rows_llm")
+        dash = lambda v, f: f.format(v) if math.isfinite(v) else "–"  # noqa: E731
+        rows.append({"cell": cell_label(m, t), "runs": len(runs),
+                     "training wall clock per run": dash(_mean(runs, "wall_s") / 60, "{:.0f} min"),
+                     "x plain SAC": dash(wall_ratio(rec, w, t, m), "{:.2f}"),
+                     "advised rows per run": dash(_mean(runs, "override/advised"), "{:,.0f}"),
+                     "LLM rows per run": dash(llm, "{:,.0f}"),
+                     "LLM tokens in / out per run": (f"{_mean(runs, 'cost/tokens_in'):,.0f} / "
+                                                     f"{_mean(runs, 'cost/tokens_out'):,.0f}") if math.isfinite(llm) else "–",
+                     "waiting for the LLM per run": dash(_mean(runs, "cost/wait_s") / 60, "{:.0f} min")})
+    return rows
+
+
 def tuning_table(rec: Records) -> list[dict[str, Any]]:
     rows = []
     for i, (w, t, m) in enumerate(c for c in rec.cells() if c[1] == "tune"):
@@ -269,7 +302,8 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
         out.append({"claim": claim, "verdict": verdict, "evidence": evidence, "command": command})
 
     if llm is None:
-        row("every claim", "untestable here", "the quick profile's SAC+LLM records are missing")
+        row("the quick profile's claims", "untestable here", "the quick profile's SAC+LLM records are missing")
+        rung_claim(rec, row)
         return out
     learners = {m: claims_grid(rec, "default", m) for m in ("sac_llm", "sac_heuristic", "sac", "ppo")}
     heur = claims_grid(rec, "default", "sac", "heuristic")
@@ -327,11 +361,37 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
     row("SAC+LLM is better than SAC+Heuristic and the fixed-probability variants",
         "holds" if better and all(b > 0 for b in better) else "does not hold" if any(b < 0 for b in better)
         else "not shown", "; ".join(parts))
+    rung_claim(rec, row)
     row("DeepSeek-R1's advice is what makes SAC+LLM work", "untestable here",
         "the local model is SmolLM2-135M (flown alone: DCR 0.08, as uniform random); the study's ladder of advisors "
         "of known quality (hover, random, greedy, planner, the local LLM) shows instead what advice of a given quality "
         "does to the actor", "`make advice-study`")
     return out
+
+
+def rung_claim(rec: Records, row: Any) -> None:
+    """SAC+LLM against SAC+Heuristic with the LLM at every trigger (the study's LLM rung, through
+    the student), on the seeds both ran, under each transfer."""
+    claim = "SAC+LLM is better than SAC+Heuristic, the LLM advising at every trigger (the study's LLM rung)"
+    command = "`make advice-llm` from a checkout with the student (uavlae/experiments/README.md)"
+    parts, signs = [], []
+    for i, transfer in enumerate(("override", "teach")):
+        llm, heur = rec.grid("aid", transfer, "sac_llm_amortized"), rec.grid("aid", transfer, "sac_heuristic")
+        if llm is None or heur is None or not set(llm.seeds) & set(heur.seeds):
+            continue
+        both = [s for s in llm.seeds if s in heur.seeds]
+        x, y = llm.take(both), heur.take(both)
+        d = {metric: difference(x, y, metric, N_BOOT, 20 + i) for metric in ("DCR", "SLR")}
+        parts.append(f"{TRANSFERS[transfer]}, seeds {' '.join(map(str, both))}: ΔDCR {fmt(*d['DCR'])}, "
+                     f"ΔSLR {fmt(*d['SLR'])}")
+        signs += [1 if v[1] > 0 else -1 if v[2] < 0 else 0 for v in d.values()]
+    if not parts:
+        row(claim, "pending", "the LLM rung has no finished run yet", command)
+        return
+    verdict = ("does not hold" if any(s < 0 for s in signs) else "holds" if all(s > 0 for s in signs)
+               else "not shown (intervals hold 0)")
+    row(claim, verdict, "learning-aid world, the actor alone, LLM rung minus greedy heuristic: " + "; ".join(parts),
+        command)
 
 
 def findings(rec: Records) -> list[str]:
@@ -346,15 +406,22 @@ def findings(rec: Records) -> list[str]:
             if (t, m) == ("override", "sac") or t == "tune":
                 continue
             g = rec.grid(w, t, m)
+            ratio = wall_ratio(rec, w, t, m)
+            cost = f"; {ratio:.2f}x plain SAC's training wall clock" if math.isfinite(ratio) else ""
             for metric in ("DCR", "SLR"):
                 d = difference(g, base, metric, N_BOOT, i)
                 if d[1] > 0:
-                    better.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)})")
+                    better.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)}{cost})")
                 elif d[2] < 0:
-                    worse.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)})")
+                    worse.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)}{cost})")
         lines.append(f"- **{WORLDS[world]}**: the actor alone beats plain SAC's, with the difference's interval above 0: "
                      + ("; ".join(better) if better else "no cell") + ". Worse than plain SAC: "
                      + ("; ".join(worse) if worse else "no cell") + ".")
+        learned = {r["cell"]: r["learned"] == "yes" for r in learned_table(rec, world)}
+        if learned and not learned.get(cell_label("sac", "override"), True):
+            found = [c for c, yes in learned.items() if yes and not c.endswith("/ tune")]
+            lines.append(f"- **{WORLDS[world]}**: plain SAC did not learn (DCR and SLR not above random's). "
+                         + ("Learned where it did not: " + ", ".join(found) if found else "No cell learned") + ".")
     return lines
 
 
@@ -494,6 +561,11 @@ def build(records_dir: Path) -> str:
                "Against plain SAC in the same world (difference, and probability of improvement):", "",
                *_md(comparison_table(rec, world), ["cell", "ΔDCR", "P(better) DCR", "ΔSLR", "P(better) SLR", "ΔCR",
                                                    "P(better) CR"]), "",
+               "What it cost (means per run; each run had one core, beside at most one other job, so the wall "
+               "clock ratios carry that noise):", "",
+               *_md(cost_table(rec, world), ["cell", "runs", "training wall clock per run", "x plain SAC",
+                                             "advised rows per run", "LLM rows per run", "LLM tokens in / out per run",
+                                             "waiting for the LLM per run"]), "",
                "Learned (DCR and SLR intervals above the uniform-random policy's on the same scenarios):", "",
                *_md(learned_table(rec, world), ["cell", "DCR", "SLR", "random DCR", "random SLR", "learned"]), "",
                f"![cells](cells_{world}.png)", "", f"![curves](curves_{world}.png)", ""]
