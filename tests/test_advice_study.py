@@ -74,6 +74,18 @@ def test_paired_difference_is_exact_when_cells_differ_by_a_constant():
     assert (p, lo, hi) == pytest.approx((0.1, 0.1, 0.1))
 
 
+def test_mean_over_settings_draws_the_seeds_once():
+    """Two settings, one seed: landed on scenario 0 of 2 in the first, on both in the second. The
+    mean SLR is (0.5 + 1) / 2 = 0.75; the first setting's replicate is 1, 0.5 or 0 (a quarter,
+    a half, a quarter), the second's always 1, so the mean's interval is [0.5, 1]."""
+    from uavlae.experiments.advice_stats import mean_interval
+
+    p, lo, hi = mean_interval([_grid([[1, 0]]), _grid([[1, 1]])], "SLR")
+    assert (p, lo, hi) == (0.75, 0.5, 1.0)
+    with pytest.raises(ValueError, match="same seeds"):
+        mean_interval([_grid([[1, 0]], seeds=[0]), _grid([[1, 1]], seeds=[1])], "SLR")
+
+
 def test_grid_from_rows_needs_shared_scenarios():
     rows = [{"seed": s, "scenario": n, "data_collected": 1, "data_total": 2, "collided": "False", "landed": "True",
              "rz_speeding": "False", "energy_used": 1, "energy_total": 4} for s in (0, 1) for n in (0, 1)]

@@ -307,6 +307,26 @@ def _full_episodes(run_dir: Path, frames: int, **cols: list) -> None:
     save_records(rows, run_dir / "eval" / f"frames_{frames:09d}" / "episodes.csv")
 
 
+def test_rows_with_their_episodes_get_the_stratified_bootstrap(tmp_path):
+    """Two seeds of sac, each landing on scenario 0 of 2: SLR 0.5 on both seeds, so a t interval
+    over seeds is [0.5, 0.5]; the bootstrap draws the scenarios too: both 0 (SLR 1), both 1 (0) a
+    quarter of the time each, so [0, 1]. A method without its episodes keeps the t interval,
+    marked (t) in the tables."""
+    root = tmp_path / "runs"
+    for s in (0, 1):
+        _full_episodes(_train_dir(root, "sac", s, _metrics(0.5, 0.5)), 1000, data_collected=[10, 0],
+                       data_total=[10.0, 10.0], landed=[True, False], energy_used=[1, 1], energy_total=[4, 4])
+        _train_dir(root, "ddpg", s, _metrics(0.6 + 0.2 * s, 0.5))
+    out = report.build(root, tmp_path / "out")
+    rows = {r["method"]: r for r in out["tables"]["train_final"]}
+    sac, ddpg = rows["sac"], rows["ddpg"]
+    assert sac["interval"] == "bootstrap" and (sac["SLR"], sac["SLR_lo"], sac["SLR_hi"]) == (0.5, 0.0, 1.0)
+    assert (sac["DCR"], sac["DCR_lo"], sac["DCR_hi"]) == (0.5, 0.0, 1.0)
+    assert ddpg["interval"] == "t" and ddpg["DCR_hi"] - 0.7 == pytest.approx(12.7062 * 0.1, abs=1e-3)
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "| sac | 0.500 [0.000, 1.000] |" in md and "| ddpg | 0.700 [-0.571, 1.971] (t) |" in md
+
+
 def test_llm_alone_paused_beside_every_method_on_its_scored_scenarios(tmp_path):
     root = tmp_path / "runs"
     # the LLM alone, paused by its call budget after 2 of the 4 scenarios
@@ -315,8 +335,10 @@ def test_llm_alone_paused_beside_every_method_on_its_scored_scenarios(tmp_path):
         "frames": 0, **{f"eval/{k}": v for k, v in _metrics(0.1, 0.0, cr=0.0, ecr=0.3).items()},
         "eval/complete": 0, "eval/episodes_scored": 2, "eval/episodes_total": 4,
         "llm/calls": 2000, "llm/http_calls": 1500, "llm/fallbacks": 3, "llm/wall_s": 3000.0}))
-    # the heuristic, two seeds; on scenarios 0-1: DCR 15/20 = 0.75 and 20/20 = 1.0 (mean 0.875,
-    # interval 12.7062 * 0.125 = 1.588), SLR 0.5 and 1.0, ECR 400/2000 = 0.2 both
+    # the heuristic, two seeds; on scenarios 0-1: DCR 15/20 = 0.75 and 20/20 = 1.0 (0.875), SLR 0.5
+    # and 1.0, ECR 400/2000 = 0.2 both. Its bootstrap over those two scenarios (not all four): the
+    # lowest DCR, 0.5, is seed 0 drawn twice and scenario 1 twice (1/16 > 2.5%), the highest, 1.0,
+    # far more often: [0.5, 1.0]
     total, e_total = [10.0] * 4, [1000.0] * 4
     for s, (data, landed) in enumerate((([10, 5, 0, 0], [True, False, True, True]), ([10, 10, 0, 0], [True, True, False, False]))):
         d = _train_dir(root, "heuristic", s, _metrics(0.5, 0.5), controller="heuristic", frames=0)
@@ -337,7 +359,7 @@ def test_llm_alone_paused_beside_every_method_on_its_scored_scenarios(tmp_path):
     assert rows["llm"]["advisor_calls"] == "2000 decisions, 1500 HTTP, 3 fallbacks" and rows["llm"]["wall_s"] == 3000.0
     h = rows["heuristic"]
     assert (h["n_seeds"], h["DCR"], h["SLR"], h["ECR"]) == (2, pytest.approx(0.875), pytest.approx(0.75), pytest.approx(0.2))
-    assert h["DCR_hi"] - 0.875 == pytest.approx(12.7062 * 0.125, abs=1e-3)
+    assert h["interval"] == "bootstrap" and (h["DCR_lo"], h["DCR_hi"]) == (0.5, 1.0)
     assert (rows["sac"]["DCR"], rows["sac"]["CR"], rows["sac"]["n_seeds"]) == (pytest.approx(0.3), pytest.approx(0.5), 1)
     # the paused run is still no finished run: out of the train table, listed as skipped
     assert {r["method"] for r in res["tables"]["train_final"]} == {"heuristic", "sac", "ddpg"}

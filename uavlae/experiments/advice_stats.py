@@ -107,6 +107,22 @@ def interval(grid: Grid, metric: str, n_boot: int = 2000, seed: int = 0) -> tupl
     return point(grid, metric), float(lo), float(hi)
 
 
+def mean_interval(grids: list[Grid], metric: str, n_boot: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """(point, lo, hi) of the mean over several settings (one grid each, the same seeds, each its
+    own scenarios) of the pooled metric: each replicate draws the seeds once for every setting (a
+    seed is one run of each) and each setting's scenarios on their own."""
+    if not grids or any(g.seeds != grids[0].seeds for g in grids):
+        raise ValueError("the settings' grids must hold the same seeds")
+    rng = np.random.default_rng(seed)
+    S = grids[0].shape[0]
+    seeds = rng.integers(S, size=(n_boot, S))
+    reps = np.mean([_pooled(_resample(g, seeds, rng.integers(g.shape[1], size=(n_boot, g.shape[1]))), metric)
+                    for g in grids], axis=0)
+    reps = reps[np.isfinite(reps)]
+    lo, hi = (np.percentile(reps, [2.5, 97.5]) if reps.size else (math.nan, math.nan))
+    return float(np.mean([point(g, metric) for g in grids])), float(lo), float(hi)
+
+
 def difference(x: Grid, y: Grid, metric: str, n_boot: int = 2000, seed: int = 0) -> tuple[float, float, float]:
     """(point, lo, hi) of ``metric(x) - metric(y)``: the scenarios drawn once for both cells, the
     seeds drawn once for both where they ran the same seeds (paired), each its own otherwise."""

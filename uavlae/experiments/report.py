@@ -5,8 +5,11 @@ It collects every run under ``RUNS_DIR``: training runs (``uavlae.train``: ``con
 ``meta.json``, ``final_metrics.json``, ``logs/scalars/``) and evaluations (``uavlae.evaluate``:
 ``evaluation.json``). A run without its final file is listed as unfinished, one whose files do
 not parse as broken; neither enters a table. Over the seeds of each (sweep, setting, method) it
-gives the mean and the 95% confidence interval of the mean (Student's t, n - 1 degrees of
-freedom; none for one seed), and writes to ``--out`` (default ``RUNS_DIR/report``):
+gives the metric and its 95% interval: the stratified bootstrap over seeds x evaluation scenarios
+of :mod:`uavlae.experiments.advice_stats` where every run kept its final evaluation's episodes
+(the interval stays inside the metric's range however few the seeds), else the interval of the
+mean over seeds (Student's t, n - 1 degrees of freedom; none for one seed, marked "t" in the
+tables); and writes to ``--out`` (default ``RUNS_DIR/report``):
 
 - ``runs.csv`` (every collected run: its metrics, commit and command), ``skipped.csv``;
 - one CSV and one Markdown table per figure, PNG and PDF figures (Fig. 3 training curves with
@@ -36,6 +39,8 @@ from typing import Any
 import yaml
 
 from uavlae.envs.metrics import aggregate, load_records
+from uavlae.experiments.advice_stats import METHOD_NAME, Grid, grid_from_rows, mean_interval
+from uavlae.experiments.advice_stats import interval as bootstrap_interval
 from uavlae.files import atomic_write, dump_json, train_eval_dir
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
@@ -337,12 +342,56 @@ def group(runs: list[Run]) -> dict[tuple[str, str, str], list[Run]]:
     return out
 
 
-def aggregate_rows(runs: list[Run], keys: dict[str, Any] | None = None) -> dict[str, Any]:
+N_BOOT = 2000
+
+
+def final_episode_rows(run: Run) -> list[dict[str, str]] | None:
+    """The episodes of a run's final evaluation (``episodes.csv`` beside a train run's final
+    metrics, or beside an evaluation's ``evaluation.json``), or None when it kept none."""
+    f = (train_eval_dir(run.path, run.frames) if run.kind == "train" else run.path) / "episodes.csv"
+    if not f.is_file():
+        return None
+    with f.open(newline="") as fh:
+        return list(csv.DictReader(fh)) or None
+
+
+def episode_grid(runs: list[Run], scenarios: list[int] | None = None) -> Grid | None:
+    """The runs' final evaluations as one grid of episodes ``[seeds, scenarios]`` (only
+    ``scenarios`` where given); None where a run kept no episodes (or not every column), two runs
+    share a seed, or the seeds did not fly the same scenarios."""
+    rows: list[dict[str, Any]] = []
+    if len({r.seed for r in runs}) != len(runs):
+        return None
+    for r in runs:
+        eps = final_episode_rows(r)
+        if eps is None:
+            return None
+        rows += [{**e, "seed": r.seed, "scenario": e.get("row", i)} for i, e in enumerate(eps)]
+    if scenarios is not None:
+        keep = set(scenarios)
+        rows = [e for e in rows if int(e["scenario"]) in keep]
+    try:
+        return grid_from_rows(rows)
+    except (KeyError, ValueError):
+        return None
+
+
+def aggregate_rows(runs: list[Run], keys: dict[str, Any] | None = None,
+                   scenarios: list[int] | None = None) -> dict[str, Any]:
+    """One table row over the seeds of a (sweep, setting, method): each metric and its interval
+    (the stratified bootstrap over seeds x scenarios where the episodes were kept, ``interval``
+    "bootstrap"; else Student's t over the seeds' metrics, ``interval`` "t"). ``scenarios``: the
+    evaluation scenarios the runs' metrics cover, where they are a subset of the set flown."""
     row: dict[str, Any] = dict(keys or {})
     row["n_seeds"] = len(runs)
     row["seeds"] = " ".join(str(r.seed) for r in sorted(runs, key=lambda r: r.seed))
-    for m in METRICS:
-        mean, lo, hi, _ = mean_ci([r.metrics.get(m, math.nan) for r in runs])
+    grid = episode_grid(runs, scenarios)
+    row["interval"] = "bootstrap" if grid is not None else "t"
+    for i, m in enumerate(METRICS):
+        if grid is not None:
+            mean, lo, hi = bootstrap_interval(grid, m, N_BOOT, i)
+        else:
+            mean, lo, hi, _ = mean_ci([r.metrics.get(m, math.nan) for r in runs])
         row[m], row[f"{m}_lo"], row[f"{m}_hi"] = mean, lo, hi
     row["frames"] = " ".join(sorted({str(r.frames) for r in runs}))
     row["episodes"] = " ".join(sorted({str(r.episodes) for r in runs}))
@@ -373,7 +422,8 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
     head = first + list(METRICS) + ["seeds", "frames", "episodes", "wall s (mean)"] + (["advisor calls (rows answered, cached)"] if calls else []) + ["commits"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [str(r[k]) for k in first] + [fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) for m in METRICS]
+        mark = " (t)" if r.get("interval") == "t" and not math.isnan(r[f"{METRICS[0]}_lo"]) else ""
+        cells = [str(r[k]) for k in first] + [fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) + mark for m in METRICS]
         cells += [f"{r['n_seeds']} ({r['seeds']})", r["frames"], r["episodes"], str(r.get("wall_s", ""))]
         cells += ([r.get("advisor_calls", "")] if calls else []) + [r["commits"]]
         lines.append("| " + " | ".join(cells) + " |")
@@ -395,10 +445,11 @@ def final_episodes(run: Run) -> dict[str, list[float]] | None:
 
 
 def learned_rows(train_rows: list[dict[str, Any]], runs: dict[str, list[Run]] | None = None) -> list[dict[str, Any]]:
-    """A method has learned when its DCR and SLR intervals lie above the random policy's: the 95%
-    intervals over seeds, or, where it or random has one seed only, over the episodes of that
-    seed's final evaluation (the same scenarios for both; per-episode DCR, so its mean can differ
-    a little from the pooled one of the tables)."""
+    """A method has learned when its DCR and SLR intervals lie above the random policy's: the
+    tables' 95% intervals (the stratified bootstrap where both kept their episodes), or, where
+    either has t intervals and one seed only, t intervals over the episodes of that seed's final
+    evaluation (the same scenarios for both; per-episode DCR, so its mean can differ a little from
+    the pooled one of the tables)."""
     rand = next((r for r in train_rows if r["method"] == "random"), None)
     runs = runs or {}
 
@@ -411,7 +462,10 @@ def learned_rows(train_rows: list[dict[str, Any]], runs: dict[str, list[Run]] | 
         if r["method"] in ("random", "heuristic", "llm"):
             continue
         row = {"method": r["method"], "n_seeds": r["n_seeds"]}
-        eps = one_seed_episodes(r["method"]) if rand_eps is not None else None
+        # rows with bootstrap intervals (this one's and random's) compare those; else, with one seed,
+        # the t intervals over that seed's evaluation episodes
+        bootstrap = r.get("interval") == "bootstrap" and rand is not None and rand.get("interval") == "bootstrap"
+        eps = one_seed_episodes(r["method"]) if rand_eps is not None and not bootstrap else None
         episodes = eps is not None
         verdicts = []
         for m in ("DCR", "SLR"):
@@ -698,7 +752,7 @@ def _train_section(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str
     if not train_rows:
         return
     w.table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
-            "Mean [95% CI] over seeds of the deterministic actor on the shared evaluation set.")
+            "The deterministic actor on the shared evaluation set, over its seeds [95% interval].")
     learned = learned_rows(train_rows, {k[2]: groups[k] for k in groups if k[0] == "train"})
     _write_csv(w.out / "learned.csv", learned)
     w.result["tables"]["learned"] = learned
@@ -714,6 +768,7 @@ def _train_section(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str
 def _scenario_sections(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str], list[Run]]) -> None:
     """Figs. 5-9 (metrics against each count) and Fig. 10 (each seed's mean over all of them)."""
     per_seed: dict[tuple[str, int, str], list[float]] = defaultdict(list)
+    grids: dict[str, list[Grid | None]] = defaultdict(list)  # method -> one grid per setting
     for sweep, (count, fig) in SCENARIO_SWEEPS.items():
         keys = [k for k in groups if k[0] == sweep]
         if not keys:
@@ -721,12 +776,13 @@ def _scenario_sections(w: _Writer, runs: list[Run], groups: dict[tuple[str, str,
         rows = []
         for k in sorted(keys, key=lambda k: (int(k[1].split("=")[-1]), method_key(k[2]))):
             rows.append(aggregate_rows(groups[k], {count: int(k[1].split("=")[-1]), "method": k[2]}))
+            grids[k[2]].append(episode_grid(groups[k]))
             for r in groups[k]:
                 for m in METRICS:
                     per_seed[(r.method, r.seed, m)].append(r.metrics[m])
         title = f"{fig.replace('fig', 'Fig. ')}: metrics against {count}"
         w.table(f"{fig}_{sweep}", rows, [count, "method"], title)
-        w.figures(fig_lines(rows, count, count, f"{title} (mean, 95% CI over seeds)", w.style, w.out, f"{fig}_{sweep}",
+        w.figures(fig_lines(rows, count, count, f"{title} (95% intervals)", w.style, w.out, f"{fig}_{sweep}",
                             w.note), [f"![{fig}]({fig}_{sweep}.png)"])
     if not per_seed:
         return
@@ -734,15 +790,21 @@ def _scenario_sections(w: _Writer, runs: list[Run], groups: dict[tuple[str, str,
     for method in sorted({k[0] for k in per_seed}, key=method_key):
         row: dict[str, Any] = {"method": method}
         seeds = sorted({k[1] for k in per_seed if k[0] == method})
-        for m in METRICS:
-            vals = [sum(per_seed[(method, s, m)]) / len(per_seed[(method, s, m)]) for s in seeds]
-            row[m], row[f"{m}_lo"], row[f"{m}_hi"], _ = mean_ci(vals)
-        row.update({"n_seeds": len(seeds), "seeds": " ".join(map(str, seeds)), "frames": "", "episodes": "",
+        settings = grids[method]
+        bootstrap = all(g is not None and g.seeds == seeds for g in settings)
+        for i, m in enumerate(METRICS):
+            if bootstrap:
+                row[m], row[f"{m}_lo"], row[f"{m}_hi"] = mean_interval(settings, m, N_BOOT, i)
+            else:
+                vals = [sum(per_seed[(method, s, m)]) / len(per_seed[(method, s, m)]) for s in seeds]
+                row[m], row[f"{m}_lo"], row[f"{m}_hi"], _ = mean_ci(vals)
+        row.update({"interval": "bootstrap" if bootstrap else "t", "n_seeds": len(seeds), "seeds": " ".join(map(str, seeds)), "frames": "", "episodes": "",
                     "commits": " ".join(sorted({r.commit + ("+dirty" if r.dirty else "") for r in runs
                                                 if r.method == method and r.kind == "eval"}))})
         rows.append(row)
     w.table("fig10_summary", rows, ["method"], "Fig. 10: mean over all scenario settings",
-            "Each seed's mean over every setting of Figs. 5-9, then mean [95% CI] over seeds.")
+            "The mean over every setting of Figs. 5-9 [95% interval: the stratified bootstrap drawing the seeds once "
+            "for all settings and each setting's scenarios on their own, or (t) Student's t over each seed's mean].")
     w.figures(fig_radar(rows, w.style, w.out, w.note), ["![fig10](fig10_summary_radar.png)"])
 
 
@@ -772,7 +834,7 @@ def _llm_sections(w: _Writer, root: Path, runs: list[Run]) -> None:
                 "The LLM alone (`+exp=llm`) decides every slot; a call budget per invocation pauses it between "
                 "scenarios and the same command continues it, so it may cover only the first scenarios of the "
                 "evaluation set. Beside it, every method of the train sweep on those scenarios (the same rows of its "
-                "final evaluation; mean [95% CI] over seeds). The LLM alone's env draws the OU turns of scenario i "
+                "final evaluation, over seeds [95% interval]). The LLM alone's env draws the OU turns of scenario i "
                 "from eval_seed + i (one scenario a chunk), the others' from one generator for the whole set: same "
                 "layouts, GEs and OU starts, other OU turns. Its cost: decisions asked, HTTP calls (the rest from the "
                 "answer cache), failed answers flown by the heuristic, and the wall clock over every invocation.")
@@ -791,7 +853,8 @@ def _header(runs: list[Run], skipped: list[tuple[str, str]], worlds: list[str], 
         f"Commits: {', '.join(sorted({r.commit + ('+dirty' if r.dirty else '') for r in runs})) or 'none'}  ",
         f"Machine(s): {machines_line(runs)}",
         "",
-        "Intervals: 95% confidence intervals of the mean over seeds (Student's t); a single seed has none. "
+        f"Intervals (95%): {METHOD_NAME.format(n=N_BOOT)}, where every run of a row kept its final evaluation's "
+        "episodes; elsewhere the interval of the mean over seeds (Student's t, marked (t)), none for a single seed. "
         "DCR and SLR: higher is better; CR, RVR and ECR: lower is better.",
         "",
     ]
@@ -877,7 +940,7 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
     """The LLM alone of the train sweep (``+exp=llm``), finished or paused by its call budget, on
     the scenarios it has scored, and beside it every other method of the train sweep on those same
     scenarios: the rows of its final evaluation's ``episodes.csv`` (one episode per scenario, row i
-    = scenario i), the metrics of that subset per seed, then mean [95% CI] over seeds. Which
+    = scenario i), the metrics of that subset over the seeds [95% interval]. Which
     scenarios it has scored is the ``row`` column of its own ``episodes.csv`` (shards finish
     chunks out of order); without that file, the set's first ``eval/episodes_scored``."""
     import torch
@@ -915,7 +978,7 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
                 continue  # not one episode per scenario
             others[r.method].append(replace(r, metrics=_metrics_of(aggregate({c: v[pick] for c, v in rec.items()}))))
         for method in sorted(others, key=method_key):
-            out.append(aggregate_rows(others[method], {"method": method, "scenarios": scen}))
+            out.append(aggregate_rows(others[method], {"method": method, "scenarios": scen}, scored))
     return out
 
 
