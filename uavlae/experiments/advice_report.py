@@ -390,6 +390,10 @@ def rung_claim(rec: Records, row: Any) -> None:
         return
     verdict = ("does not hold" if any(s < 0 for s in signs) else "holds" if all(s > 0 for s in signs)
                else "not shown (intervals hold 0)")
+    wanted = {(t, m): n for w, t, m, n in DESIGN if w == "aid" and m == "sac_llm_amortized"}
+    done = {t: len(g.seeds) for t in ("override", "teach") if (g := rec.grid("aid", t, "sac_llm_amortized"))}
+    if any(done.get(t, 0) < n for (t, _), n in wanted.items()):
+        verdict += " so far (seeds done: " + ", ".join(f"{t} {done.get(t, 0)} of {n}" for (t, _), n in wanted.items()) + ")"
     row(claim, verdict, "learning-aid world, the actor alone, LLM rung minus greedy heuristic: " + "; ".join(parts),
         command)
 
