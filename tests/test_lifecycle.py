@@ -79,6 +79,44 @@ def test_sigterm_checkpoints_and_resume_continues_exactly(tmp_path, exp):
     assert steps == sorted(set(steps)) and steps[-1] == 384  # no frame logged twice
 
 
+def test_one_stop_delivered_twice_still_checkpoints(tmp_path):
+    """SIGTERM sent to the process group and passed on again by a parent (GNU make, timeout)
+    arrives twice at once: still one graceful stop with its checkpoint, not an abrupt end."""
+    run_dir = tmp_path / "twice"
+    # batches of 2,048 frames and 1,024 updates: the stop waits a second or more for its batch
+    proc = _child(run_dir, "+exp=sac", *RESUME[:-1], "logger.wandb.mode=disabled", "trainer.total_frames=100000",
+                  "trainer.frames_per_batch=2048", "trainer.env_batch_size=16", "trainer.checkpoint_every_frames=2048")
+    _wait_for(run_dir / "checkpoints" / LAST, proc)
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(0.3)  # the second after the first was handled (sent together, they merge into one)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=300)
+    # stopped after its checkpoint (the repeat may still end the process once the stop is done)
+    assert "stopped by signal 15 at " in err and f"continue with: python -m uavlae.train resume={run_dir}" in err
+    assert 0 < load_checkpoint(run_dir)[0]["counters"]["frames"] < 100000
+
+
+def test_a_stop_asked_again_later_ends_at_once():
+    """The same signal within GracefulStop.SAME_STOP_S (2 s) of the first is that stop again:
+    nothing more happens; 2.1 s after it, it is a second request: the handler that was there
+    before runs (by default, the end of the process)."""
+    from uavlae.lifecycle import GracefulStop
+
+    now, seen = [100.0], []
+    original = signal.signal(signal.SIGTERM, lambda *_: seen.append("previous"))
+    try:
+        with GracefulStop(clock=lambda: now[0]) as stop:
+            os.kill(os.getpid(), signal.SIGTERM)
+            now[0] += 1.9
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert stop.signum == signal.SIGTERM and seen == []
+            now[0] += 0.2
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert seen == ["previous"]
+    finally:
+        signal.signal(signal.SIGTERM, original)
+
+
 def test_resume_refuses_a_conflict_and_honours_an_extension(tmp_path):
     from uavlae.train import run
 

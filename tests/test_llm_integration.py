@@ -34,6 +34,8 @@ def llm_server():
 def test_server_is_healthy_and_local(llm_server):
     assert llm_server.base_url.startswith("http://127.0.0.1:")
     assert httpx.get(llm_server.base_url.removesuffix("/v1") + "/health", timeout=5).status_code == 200
+    # a process group of its own: a stop sent to the trainer's group leaves it answering
+    assert os.getpgid(llm_server.pid) == llm_server.pid != os.getpgid(0)
 
 
 def test_real_states_give_validated_actions(llm_server, tmp_path):

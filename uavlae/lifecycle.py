@@ -24,6 +24,7 @@ import json
 import os
 import shutil
 import signal
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -299,22 +300,30 @@ def _continue(run_dir: Path, merged: dict[str, Any]) -> Plan:
 class GracefulStop:
     """While active, SIGTERM and SIGINT set :attr:`signum` instead of ending the process; the
     loop ends its current batch, writes a checkpoint and raises :class:`RunStopped`. A second
-    signal of the same kind ends the process at once (the previous handler runs). Only the main
+    signal of the same kind ends the process at once (the previous handler runs), unless it
+    comes within :attr:`SAME_STOP_S` of the first: one stop often arrives twice, to the whole
+    process group and again from a parent that passes it on (GNU make forwards SIGTERM to its
+    recipe, ``timeout`` to its command), and that must not cost the checkpoint. Only the main
     thread can install handlers; elsewhere this does nothing."""
 
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
+    SAME_STOP_S = 2.0
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Any = time.monotonic) -> None:
         self.signum: int | None = None
         self._previous: dict[int, Any] = {}
+        self._clock = clock
+        self._first_at = 0.0
 
     def _handle(self, signum: int, frame: Any) -> None:
-        if self.signum is not None:  # asked twice: stop now
-            previous = self._previous.get(signum)
-            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+        if self.signum is None:
+            self.signum, self._first_at = signum, self._clock()
             return
-        self.signum = signum
+        if signum == self.signum and self._clock() - self._first_at < self.SAME_STOP_S:
+            return  # the same stop, delivered again
+        previous = self._previous.get(signum)  # asked again: stop now
+        signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
 
     def __enter__(self) -> GracefulStop:
         try:

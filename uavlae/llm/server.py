@@ -106,8 +106,11 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg.n_threads))
     root = str(Path(__file__).resolve().parents[2])  # the child imports this package from here too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    # a session of its own: a stop sent to the whole process group (Ctrl-C in a terminal, a
+    # scheduler's SIGTERM) reaches the trainer, which ends its batch with the server still
+    # answering and then stops it; the server cannot outlive the trainer (stdin EOF)
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env, bufsize=1)
+                            text=True, env=env, bufsize=1, start_new_session=True)
     log: collections.deque = collections.deque(maxlen=200)  # bounded: a long run logs a lot
     found: list[str] = []
     ready = threading.Event()
