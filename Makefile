@@ -405,7 +405,8 @@ ADVICE_SEEDS ?= 0,1,2,3,4
 ADVICE_FEW_SEEDS ?= 0,1,2
 ADVICE_TUNE_SEEDS ?= 100,101
 ADVICE_TUNE_WEIGHTS ?= 0.1,0.4,1.6
-ADVICE_LLM_EVAL_CALLS ?= 500
+# rows the LLM rung's with-advisor evaluation may ask (null: every triggered row; the student's budget governs)
+ADVICE_LLM_EVAL_CALLS ?= null
 ADVICE = $(TRAIN_SWEEP) +sweep=advice +profile=quick experiment.root=$(ADVICE_EXP_ROOT) hydra/launcher=local \
 	hydra.launcher.n_jobs=$(ADVICE_JOBS)
 # the replay buffer holds every frame of a run either way; sized to the run, its checkpoints are smaller
@@ -436,7 +437,7 @@ advice-spec: $(STAMP)
 		env.reward.progress_weight=0.0 experiment.method=sac_ego_only
 	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_aid +exp=sac seed=$(ADVICE_FEW_SEEDS) env=shaped_geodesic \
 		env.ego_features=false experiment.method=sac_progress_only
-# the local LLM at the budget it affords here (advisor.max_calls rows a run; the report gives the advised fraction)
+# the local LLM at every trigger, through the student at +exp=sac_llm_amortized's budget
 advice-llm: $(STAMP)
 	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac_llm_amortized seed=$(ADVICE_FEW_SEEDS) \
 		trainer.eval_advisor_max_calls=$(ADVICE_LLM_EVAL_CALLS)

@@ -119,7 +119,10 @@ def test_report_from_records_alone(tmp_path):
             runs.append({"world": "aid", "transfer": transfer, "method": method, "seed": seed, "sweep": "advice",
                          "frames": 1000, "wall_s": 2400.0 if llm else 600.0,
                          "override/advised": "" if method == "sac" else 100,
+                         # the with-advisor evaluation: 500 of the LLM rung's 2,000 triggered rows advised
+                         "advised/override/advised": 500 if llm else "", "advised/override/triggered": 2000 if llm else "",
                          "cost/rows_llm": 20 + 20 * seed if llm else "", "cost/wait_s": 600 + 600 * seed if llm else "",
+                         "cost/llm_calls": 20 if llm else "", "cost/llm_cache_hits": 20 * seed if llm else "",
                          "cost/tokens_in": 1000 + 2000 * seed if llm else "",
                          "cost/tokens_out": 100 + 200 * seed if llm else "",
                          "advisor": {"sac": "none", "sac_heuristic": "heuristic/greedy",
@@ -147,12 +150,12 @@ def test_report_from_records_alone(tmp_path):
     assert learned and learned[-1].endswith("| yes |")
     assert [line for line in text.splitlines() if line.startswith("| sac / override | 0.000")][-1].endswith("| no |")
     assert [line for line in text.splitlines() if line.startswith("| sac_llm_amortized / override | 0.250")
-            ][0].endswith("| student; LLM 30.0% of advised rows |")
+            ][0].endswith("| 0.250 | student; LLM 30.0% of advised rows |")
     assert [line for line in text.splitlines() if line.startswith("| sac_heuristic / teach | 0.250")
-            ][0].endswith("| none |")
-    assert ("| sac_llm_amortized / override | 2 | 40 min | 4.00 | 100 | 30 | 2,000 / 200 | 15 min |"
+            ][0].endswith("| – | none |")
+    assert ("| sac_llm_amortized / override | 2 | 40 min | 4.00 | 100 | 30 | 20 / 10 | 2,000 / 200 | 15 min |"
             in text.splitlines())
-    assert "| sac / override | 2 | 10 min | 1.00 | – | – | – | – |" in text.splitlines()
+    assert "| sac / override | 2 | 10 min | 1.00 | – | – | – | – | – |" in text.splitlines()
     assert ("LLM rung) | not shown (intervals hold 0) so far (seeds done: override 2 of 3, teach 0 of 3) | "
             "learning-aid world, the actor alone, LLM rung minus "
             "greedy heuristic: the paper's override, seeds 0 1: ΔDCR -0.500 [-1.000, 0.000]") in text

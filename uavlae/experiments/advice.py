@@ -42,7 +42,7 @@ EPISODE_COLUMNS = ("data_collected", "data_total", "collided", "landed", "rz_spe
 RUN_COUNTERS = ("advised_fraction", "trigger_rate", "actor_gap", "actor_agree", "triggered", "advised",
                 "budget_skipped", "frames", "source/fallback", "source/llm", "source/student")
 # the LLM's cost that a run's final metrics carry (uavlae.llm's accounting), kept per run
-COST_KEYS = ("rows_llm", "rows_student", "tokens_in", "tokens_out", "wait_s")
+COST_KEYS = ("rows_llm", "rows_student", "llm_calls", "llm_cache_hits", "tokens_in", "tokens_out", "wait_s")
 # what the training curves keep: (scalar file under logs/scalars, column name)
 CURVE_SCALARS = (("eval/DCR", "DCR"), ("eval/SLR", "SLR"), ("eval/CR", "CR"), ("eval/RVR", "RVR"),
                  ("override/trigger_rate", "trigger_rate"), ("override/advised_fraction", "advised_fraction"),

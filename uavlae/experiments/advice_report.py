@@ -166,6 +166,9 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
         for metric in ("DCR", "SLR", "CR"):
             row[f"{metric} alone"] = fmt(*interval(alone, metric, N_BOOT, i)) if alone else ""
             row[f"{metric} with advisor"] = fmt(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
+        # with a row budget at that evaluation, the actor answered the rest: what "with advisor" means
+        row["triggered rows advised, with advisor"] = f"{mean('advised/override/advised') / mean('advised/override/triggered'):.3f}" \
+            if mean("advised/override/triggered") > 0 else "–"
         calls = [r.get("max_calls") for r in runs if r.get("max_calls") not in (None, "", "None")]
         row["advisor budget"] = f"max_calls {calls[0]}" if calls else "none"
         if any(str(r.get("amortize")) == "True" for r in runs):  # who answered the advised rows
@@ -253,6 +256,9 @@ def cost_table(rec: Records, world: str) -> list[dict[str, Any]]:
                      "x plain SAC": dash(wall_ratio(rec, w, t, m), "{:.2f}"),
                      "advised rows per run": dash(_mean(runs, "override/advised"), "{:,.0f}"),
                      "LLM rows per run": dash(llm, "{:,.0f}"),
+                     "asked live / from the answer cache": (f"{_mean(runs, 'cost/llm_calls'):,.0f} / "
+                                                            f"{_mean(runs, 'cost/llm_cache_hits'):,.0f}")
+                     if math.isfinite(llm) else "–",
                      "LLM tokens in / out per run": (f"{_mean(runs, 'cost/tokens_in'):,.0f} / "
                                                      f"{_mean(runs, 'cost/tokens_out'):,.0f}") if math.isfinite(llm) else "–",
                      "waiting for the LLM per run": dash(_mean(runs, "cost/wait_s") / 60, "{:.0f} min")})
@@ -561,14 +567,18 @@ def build(records_dir: Path) -> str:
                *_md(dependence_table(rec, world), ["cell", "advised fraction", "trigger rate", "trigger, first / last fifth",
                                                    "actor within tol of advice", "actor-advice gap", "DCR alone",
                                                    "DCR with advisor", "SLR alone", "SLR with advisor", "CR alone",
-                                                   "CR with advisor", "advisor budget"]), "",
+                                                   "CR with advisor", "triggered rows advised, with advisor",
+                                                   "advisor budget"]), "",
                "Against plain SAC in the same world (difference, and probability of improvement):", "",
                *_md(comparison_table(rec, world), ["cell", "ΔDCR", "P(better) DCR", "ΔSLR", "P(better) SLR", "ΔCR",
                                                    "P(better) CR"]), "",
                "What it cost (means per run; each run had one core, beside at most one other job, so the wall "
-               "clock ratios carry that noise):", "",
+               "clock ratios carry that noise). An LLM row answered from the answer cache (a run repeated with "
+               "the same seed asks the same questions) costs no call, no token and almost no wait: the wall "
+               "clock of such a run is not the live cost.", "",
                *_md(cost_table(rec, world), ["cell", "runs", "training wall clock per run", "x plain SAC",
-                                             "advised rows per run", "LLM rows per run", "LLM tokens in / out per run",
+                                             "advised rows per run", "LLM rows per run",
+                                             "asked live / from the answer cache", "LLM tokens in / out per run",
                                              "waiting for the LLM per run"]), "",
                "Learned (DCR and SLR intervals above the uniform-random policy's on the same scenarios):", "",
                *_md(learned_table(rec, world), ["cell", "DCR", "SLR", "random DCR", "random SLR", "learned"]), "",
