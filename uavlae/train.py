@@ -397,8 +397,10 @@ def _advised_evaluation(t: Training) -> dict[str, float]:
     owes to its advisor. Training state is untouched (``OverridePolicy.advised``)."""
     with t.policy.advised(max_calls=t.tr.eval_advisor_max_calls):
         flight = t.evaluation.fly(t.policy, t.run_dir / "eval" / "with_advisor", title=f"{t.cfg.name} with its advisor")
+    # who answered there: the LLM through its student answers this evaluation too (from the cache
+    # where it asked the same before), so its share here is the evaluation's own cost
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
-            "advised", "budget_skipped", "frames")
+            "advised", "budget_skipped", "frames", "source/llm", "source/student", "source/fallback")
     return {**_prefixed("advised", flight.metrics), **_prefixed("advised/override", {k: flight.stats[k] for k in keep})}
 
 
