@@ -121,6 +121,9 @@ def test_report_from_records_alone(tmp_path):
                          "override/advised": "" if method == "sac" else 100,
                          # the with-advisor evaluation: 500 of the LLM rung's 2,000 triggered rows advised
                          "advised/override/advised": 500 if llm else "", "advised/override/triggered": 2000 if llm else "",
+                         # of those 500, the LLM answered 50 and the student 450: 10%
+                         "advised/override/source/llm": 50 if llm else "",
+                         "advised/override/source/student": 450 if llm else "",
                          "cost/rows_llm": 20 + 20 * seed if llm else "", "cost/wait_s": 600 + 600 * seed if llm else "",
                          "cost/llm_calls": 20 if llm else "", "cost/llm_cache_hits": 20 * seed if llm else "",
                          "cost/tokens_in": 1000 + 2000 * seed if llm else "",
@@ -150,7 +153,7 @@ def test_report_from_records_alone(tmp_path):
     assert learned and learned[-1].endswith("| yes |")
     assert [line for line in text.splitlines() if line.startswith("| sac / override | 0.000")][-1].endswith("| no |")
     assert [line for line in text.splitlines() if line.startswith("| sac_llm_amortized / override | 0.250")
-            ][0].endswith("| 0.250 | student; LLM 30.0% of advised rows |")
+            ][0].endswith("| 0.250 | student; LLM 30.0% of advised rows (10.0% with advisor) |")
     assert [line for line in text.splitlines() if line.startswith("| sac_heuristic / teach | 0.250")
             ][0].endswith("| – | none |")
     assert ("| sac_llm_amortized / override | 2 | 40 min | 4.00 | 100 | 30 | 20 / 10 | 2,000 / 200 | 15 min |"

@@ -175,6 +175,9 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
             llm, student = mean("override/source/llm"), mean("override/source/student")
             row["advisor budget"] = f"student; LLM {llm / (llm + student):.1%} of advised rows" \
                 if llm + student > 0 else "student"
+            ev_llm, ev_student = mean("advised/override/source/llm"), mean("advised/override/source/student")
+            if ev_llm + ev_student > 0:  # recorded by runs made since the evaluation counts who answered
+                row["advisor budget"] += f" ({ev_llm / (ev_llm + ev_student):.1%} with advisor)"
         rows.append(row)
     return rows
 
