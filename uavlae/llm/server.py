@@ -106,7 +106,7 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg.n_threads))
     root = str(Path(__file__).resolve().parents[2])  # the child imports this package from here too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-    # a session of its own: a stop sent to the whole process group (Ctrl-C in a terminal, a
+    # a process group of its own: a stop sent to the trainer's whole group (Ctrl-C in a terminal, a
     # scheduler's SIGTERM) reaches the trainer, which ends its batch with the server still
     # answering and then stops it; the server cannot outlive the trainer (stdin EOF)
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
