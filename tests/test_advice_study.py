@@ -159,6 +159,7 @@ def test_report_from_records_alone(tmp_path):
     assert ("| sac_llm_amortized / override | 2 | 40 min | 4.00 | 100 | 30 | 20 / 10 | 2,000 / 200 | 15 min |"
             in text.splitlines())
     assert "| sac / override | 2 | 10 min | 1.00 | – | – | – | – | – |" in text.splitlines()
+    assert "- LLM HTTP calls over the study: 40 (and 20 LLM rows answered from the answer cache)." in text
     assert ("LLM rung) | not shown (intervals hold 0) so far (seeds done: override 2 of 3, teach 0 of 3) | "
             "learning-aid world, the actor alone, LLM rung minus "
             "greedy heuristic: the paper's override, seeds 0 1: ΔDCR -0.500 [-1.000, 0.000]") in text

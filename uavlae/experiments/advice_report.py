@@ -524,13 +524,20 @@ def compute_lines(rec: Records) -> list[str]:
     frames = sum(int(_num(r.get("frames"))) for r in rec.runs)
     commits = sorted({r.get("commit", "") for r in rec.runs})
     machines = sorted({r.get("machine", "") for r in rec.runs if r.get("machine")})
-    llm_calls = sum(_num(r.get("override/advisor/calls")) for r in rec.runs if math.isfinite(_num(r.get("override/advisor/calls"))))
+    def calls(r: dict[str, str]) -> float:  # the student's runs count the LLM's calls under cost/
+        v = _num(r.get("cost/llm_calls"))
+        v = v if math.isfinite(v) else _num(r.get("override/advisor/calls"))
+        return v if math.isfinite(v) else 0.0
+
+    llm_calls = sum(calls(r) for r in rec.runs)
+    cached = sum(v for r in rec.runs if math.isfinite(v := _num(r.get("cost/llm_cache_hits"))))
     dirty = sum(1 for r in rec.runs if r.get("dirty") == "True")
     return [
         f"- Finished runs: {len(rec.runs)}, {frames:,} training frames, {wall / 3600:.1f} h of training wall clock "
         f"(evaluations not counted), each run on one core (one or two side by side) of: {'; '.join(machines) or 'not recorded'}.",
         f"- Code: commit {', '.join(commits)}" + (f" ({dirty} runs with uncommitted changes)" if dirty else " (clean)") + ".",
-        f"- LLM HTTP calls over the study: {int(llm_calls):,}.",
+        f"- LLM HTTP calls over the study: {int(llm_calls):,} (and {int(cached):,} LLM rows answered from the answer "
+        "cache).",
         "- Disk: a finished run keeps its networks and records, not its replay buffer (a few MB); a run in flight holds "
         "one checkpoint with its buffer, sized to the run (about 0.5 GB at 400k frames, 1.4 GB at 1M).",
     ]
