@@ -461,6 +461,7 @@ def figures(rec: Records, out: Path) -> list[str]:
         if not cells:
             continue
         fig, axes = plt.subplots(1, 2, figsize=(11, 0.45 * len(cells) + 1.8), sharey=True)
+        labelled: set[str] = set()  # each evaluation named once (plain SAC, first, has no advisor)
         for ax, metric in zip(axes, ("DCR", "SLR")):
             for j, (w, t, m) in enumerate(cells):
                 for k, (ev, colour) in enumerate((("alone", "tab:blue"), ("with_advisor", "tab:orange"))):
@@ -470,14 +471,16 @@ def figures(rec: Records, out: Path) -> list[str]:
                     p, lo, hi = interval(g, metric, N_BOOT, j)
                     y = j + (0.15 if k else -0.15)
                     ax.errorbar([p], [y], xerr=[[p - lo], [hi - p]], fmt="o", color=colour,
-                                label=("actor alone" if ev == "alone" else "actor with its advisor") if j == 0 else None)
+                                label=None if ev in labelled else ("actor alone" if ev == "alone"
+                                                                   else "actor with its advisor"))
+                    labelled.add(ev)
             ax.set_xlabel(f"{metric} (95% stratified bootstrap)")
             ax.set_xlim(-0.02, 1.02)
             ax.grid(alpha=0.3)
         axes[0].set_yticks(range(len(cells)), [cell_label(m, t) for _, t, m in cells])
-        axes[0].legend(loc="lower right", fontsize=8)
-        fig.suptitle(WORLDS[world])
-        fig.tight_layout()
+        fig.legend(loc="upper right", ncol=2, fontsize=8)
+        fig.suptitle(WORLDS[world], x=0.3)
+        fig.tight_layout(rect=(0, 0, 1, 0.95))
         made += _save(fig, out, f"cells_{world}")
         plt.close(fig)
         # curves: the actor alone's DCR during training, and the trigger rate
