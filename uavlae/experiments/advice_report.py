@@ -485,7 +485,8 @@ def figures(rec: Records, out: Path) -> list[str]:
         plt.close(fig)
         # curves: the actor alone's DCR during training, and the trigger rate
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
-        for (w, t, m) in cells:
+        colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        for i, (w, t, m) in enumerate(cells):  # one colour a cell in both panels
             for ax, col in zip(axes, ("DCR", "trigger_rate")):
                 pts: dict[int, list[float]] = defaultdict(list)
                 for c in rec.curves:
@@ -493,14 +494,15 @@ def figures(rec: Records, out: Path) -> list[str]:
                         pts[int(c["frames"])].append(float(c[col]))
                 if pts and (col == "DCR" or m != "sac"):
                     xs = sorted(pts)
-                    ax.plot(xs, [sum(pts[x]) / len(pts[x]) for x in xs], label=cell_label(m, t), lw=1)
+                    ax.plot(xs, [sum(pts[x]) / len(pts[x]) for x in xs], lw=1, color=colours[i % len(colours)],
+                            label=cell_label(m, t) if ax is axes[0] else None)
         axes[0].set_title("actor alone, DCR during training (mean over seeds)")
         axes[1].set_title("trigger rate during training (mean over seeds)")
         for ax in axes:
             ax.set_xlabel("frames")
             ax.grid(alpha=0.3)
-        if axes[1].get_legend_handles_labels()[0]:
-            axes[1].legend(fontsize=7)
+        if axes[0].get_legend_handles_labels()[0]:
+            axes[0].legend(fontsize=7)
         fig.suptitle(WORLDS[world])
         fig.tight_layout()
         made += _save(fig, out, f"curves_{world}")
