@@ -141,6 +141,13 @@ def cells_table(rec: Records, world: str) -> list[dict[str, Any]]:
     return rows
 
 
+def _mean(runs: list[dict[str, str]], key: str) -> float:
+    """The mean of ``key`` over the runs that recorded it (NaN where none did)."""
+    xs = [_num(r.get(key)) for r in runs]
+    xs = [x for x in xs if math.isfinite(x)]
+    return sum(xs) / len(xs) if xs else math.nan
+
+
 def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
     """Per advised cell: the advised fraction of stored transitions and the trigger rate (means
     over seeds), the trigger rate over the first and the last fifth of training, the agreement
@@ -151,31 +158,27 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
         if not runs or all(r.get("advisor", "none") == "none" for r in runs):
             continue
 
-        def mean(key: str) -> float:
-            xs = [_num(r.get(key)) for r in runs]
-            xs = [x for x in xs if math.isfinite(x)]
-            return sum(xs) / len(xs) if xs else math.nan
-
         early, late = trigger_phases(rec, w, t, m)
         alone, withadv = rec.grid(w, t, m), rec.grid(w, t, m, "with_advisor")
-        row = {"cell": cell_label(m, t), "advised fraction": f"{mean('override/advised_fraction'):.3f}",
-               "trigger rate": f"{mean('override/trigger_rate'):.3f}",
+        row = {"cell": cell_label(m, t), "advised fraction": f"{_mean(runs, 'override/advised_fraction'):.3f}",
+               "trigger rate": f"{_mean(runs, 'override/trigger_rate'):.3f}",
                "trigger, first / last fifth": f"{early:.3f} / {late:.3f}",
-               "actor within tol of advice": f"{mean('override/actor_agree'):.3f}",
-               "actor-advice gap": f"{mean('override/actor_gap'):.3f}"}
+               "actor within tol of advice": f"{_mean(runs, 'override/actor_agree'):.3f}",
+               "actor-advice gap": f"{_mean(runs, 'override/actor_gap'):.3f}"}
         for metric in ("DCR", "SLR", "CR"):
             row[f"{metric} alone"] = fmt(*interval(alone, metric, N_BOOT, i)) if alone else ""
             row[f"{metric} with advisor"] = fmt(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
         # with a row budget at that evaluation, the actor answered the rest: what "with advisor" means
-        row["triggered rows advised, with advisor"] = f"{mean('advised/override/advised') / mean('advised/override/triggered'):.3f}" \
-            if mean("advised/override/triggered") > 0 else "–"
+        triggered = _mean(runs, "advised/override/triggered")
+        row["triggered rows advised, with advisor"] = (f"{_mean(runs, 'advised/override/advised') / triggered:.3f}"
+                                                       if triggered > 0 else "–")
         calls = [r.get("max_calls") for r in runs if r.get("max_calls") not in (None, "", "None")]
         row["advisor budget"] = f"max_calls {calls[0]}" if calls else "none"
         if any(str(r.get("amortize")) == "True" for r in runs):  # who answered the advised rows
-            llm, student = mean("override/source/llm"), mean("override/source/student")
+            llm, student = _mean(runs, "override/source/llm"), _mean(runs, "override/source/student")
             row["advisor budget"] = f"student; LLM {llm / (llm + student):.1%} of advised rows" \
                 if llm + student > 0 else "student"
-            ev_llm, ev_student = mean("advised/override/source/llm"), mean("advised/override/source/student")
+            ev_llm, ev_student = _mean(runs, "advised/override/source/llm"), _mean(runs, "advised/override/source/student")
             if ev_llm + ev_student > 0:  # recorded by runs made since the evaluation counts who answered
                 row["advisor budget"] += f" ({ev_llm / (ev_llm + ev_student):.1%} with advisor)"
         rows.append(row)
@@ -230,12 +233,6 @@ def learned_table(rec: Records, world: str) -> list[dict[str, Any]]:
         rows.append({"cell": cell_label(m, t), "DCR": fmt(*dcr), "SLR": fmt(*slr), "random DCR": fmt(*r_dcr),
                      "random SLR": fmt(*r_slr), "learned": "yes" if learned else "no"})
     return rows
-
-
-def _mean(runs: list[dict[str, str]], key: str) -> float:
-    xs = [_num(r.get(key)) for r in runs]
-    xs = [x for x in xs if math.isfinite(x)]
-    return sum(xs) / len(xs) if xs else math.nan
 
 
 def wall_ratio(rec: Records, world: str, transfer: str, method: str) -> float:
@@ -399,10 +396,10 @@ def rung_claim(rec: Records, row: Any) -> None:
         return
     verdict = ("does not hold" if any(s < 0 for s in signs) else "holds" if all(s > 0 for s in signs)
                else "not shown (intervals hold 0)")
-    wanted = {(t, m): n for w, t, m, n in DESIGN if w == "aid" and m == "sac_llm_amortized"}
-    done = {t: len(g.seeds) for t in ("override", "teach") if (g := rec.grid("aid", t, "sac_llm_amortized"))}
-    if any(done.get(t, 0) < n for (t, _), n in wanted.items()):
-        verdict += " so far (seeds done: " + ", ".join(f"{t} {done.get(t, 0)} of {n}" for (t, _), n in wanted.items()) + ")"
+    rung = [r for r in progress_rows(rec) if (r["world"], r["method"]) == ("aid", "sac_llm_amortized")]
+    if any(r["state"] != "done" for r in rung):
+        verdict += " so far (seeds done: " + ", ".join(f"{r['transfer']} {r['seeds done']} of {r['seeds wanted']}"
+                                                       for r in rung) + ")"
     row(claim, verdict, "learning-aid world, the actor alone, LLM rung minus greedy heuristic: " + "; ".join(parts),
         command)
 

@@ -433,11 +433,8 @@ def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
 def final_episodes(run: Run) -> dict[str, list[float]] | None:
     """The per-episode DCR and SLR of a train run's final evaluation (``eval/frames_<frames>/episodes.csv``:
     data collected over data held, landed), or None when that file is missing."""
-    f = train_eval_dir(run.path, run.frames) / "episodes.csv"
-    if not f.is_file():
-        return None
-    rows = list(csv.DictReader(f.open(newline="")))
-    if not rows:
+    rows = final_episode_rows(run)
+    if rows is None:
         return None
     return {"DCR": [float(r["data_collected"]) / float(r["data_total"]) if float(r["data_total"]) > 0 else 0.0
                     for r in rows],
