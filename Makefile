@@ -425,9 +425,7 @@ advice-tune: $(STAMP)
 advice-aid: $(STAMP)
 	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac,sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
 	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
-		+exp=sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
-	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
-		+exp=sac_hover,sac_random_advice seed=$(ADVICE_FEW_SEEDS)
+		+exp=sac_heuristic,sac_heuristic_planner,sac_hover,sac_random_advice seed=$(ADVICE_SEEDS)
 advice-spec: $(STAMP)
 	$(ADVICE) $(ADVICE_SPEC) experiment.point=spec_override +exp=sac,sac_heuristic seed=$(ADVICE_FEW_SEEDS)
 	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_SPEC) $(TEACH_SPEC) algo.clone_weight=$$w experiment.point=spec_teach \
