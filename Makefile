@@ -423,7 +423,8 @@ advice-tune: $(STAMP)
 	$(ADVICE) $(ADVICE_AID) $(TEACH_AID) experiment.point=aid_tune +exp=sac_heuristic seed=$(ADVICE_TUNE_SEEDS) \
 		algo.clone_weight=$(ADVICE_TUNE_WEIGHTS) 'experiment.method=sac_heuristic_w$${algo.clone_weight}'
 advice-aid: $(STAMP)
-	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override +exp=sac,sac_heuristic,sac_heuristic_planner seed=$(ADVICE_SEEDS)
+	$(ADVICE) $(ADVICE_AID) experiment.point=aid_override \
+		+exp=sac,sac_heuristic,sac_heuristic_planner,sac_hover,sac_random_advice seed=$(ADVICE_SEEDS)
 	$(CHOOSE_CLONE) $(ADVICE) $(ADVICE_AID) $(TEACH_AID) algo.clone_weight=$$w experiment.point=aid_teach \
 		+exp=sac_heuristic,sac_heuristic_planner,sac_hover,sac_random_advice seed=$(ADVICE_SEEDS)
 advice-spec: $(STAMP)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import math
+import zlib
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -44,7 +45,8 @@ ADVISORS = {"sac": "none", "sac_heuristic": "greedy heuristic", "sac_heuristic_p
             "sac_ego_only": "none (ego-centric columns only)", "sac_progress_only": "none (progress reward only)"}
 # the study's design: (world, transfer, method, seeds)
 DESIGN = (
-    *[("aid", "override", m, 5) for m in ("sac", "sac_heuristic", "sac_heuristic_planner")],
+    *[("aid", "override", m, 5) for m in ("sac", "sac_heuristic", "sac_heuristic_planner", "sac_hover",
+                                          "sac_random_advice")],
     *[("aid", "teach", m, 5) for m in ("sac_heuristic", "sac_heuristic_planner", "sac_hover", "sac_random_advice")],
     *[("spec", "override", m, 3) for m in ("sac", "sac_heuristic")],
     ("spec", "teach", "sac_heuristic", 3),
@@ -123,6 +125,12 @@ def cell_label(method: str, transfer: str) -> str:
     return f"{method} / {transfer}"
 
 
+def cell_seed(world: str, transfer: str, method: str) -> int:
+    """The bootstrap's random seed for one cell, from its name: a cell added to the study leaves
+    every other cell's intervals as they were (a seed from the cell's position would not)."""
+    return zlib.crc32(f"{world}/{transfer}/{method}".encode())
+
+
 def metric_cells(g: Grid | None, seed: int) -> dict[str, str]:
     if g is None:
         return {m: "" for m in METRICS}
@@ -131,11 +139,11 @@ def metric_cells(g: Grid | None, seed: int) -> dict[str, str]:
 
 def cells_table(rec: Records, world: str) -> list[dict[str, Any]]:
     rows = []
-    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+    for w, t, m in (c for c in rec.cells() if c[0] == world):
         alone = rec.grid(w, t, m)
         row = {"cell": cell_label(m, t), "advisor": ADVISORS.get(m.split("_w")[0], m), "transfer": TRANSFERS.get(t, t),
                "seeds": " ".join(map(str, alone.seeds)) if alone else ""}
-        row.update(metric_cells(alone, seed=i))
+        row.update(metric_cells(alone, seed=cell_seed(w, t, m)))
         rows.append(row)
     return rows
 
@@ -152,7 +160,8 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
     over seeds), the trigger rate over the first and the last fifth of training, the agreement
     of the actor with executed advice, and DCR / SLR alone and with the advisor."""
     rows = []
-    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+    for w, t, m in (c for c in rec.cells() if c[0] == world):
+        i = cell_seed(w, t, m)
         runs = rec.run_rows(w, t, m)
         if not runs or all(r.get("advisor", "none") == "none" for r in runs):
             continue
@@ -201,19 +210,19 @@ def trigger_phases(rec: Records, world: str, transfer: str, method: str) -> tupl
 
 def against_plain(rec: Records, world: str) -> list[tuple[int, str, str, Grid, Grid]]:
     """Every advised or aided cell of ``world`` with plain SAC (``sac / override``), both on the
-    seeds both ran: (index, transfer, method, cell, plain SAC). A cell with fewer seeds is not
+    seeds both ran: (bootstrap seed, transfer, method, cell, plain SAC). A cell with fewer seeds is not
     set against plain SAC's other seeds, whose luck it did not share."""
     base = rec.grid(world, "override", "sac")
     if base is None:
         return []
     out = []
-    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+    for w, t, m in (c for c in rec.cells() if c[0] == world):
         if (t, m) == ("override", "sac") or t == "tune":
             continue
         g = rec.grid(w, t, m)
         both = [s for s in g.seeds if s in base.seeds]
         if both:
-            out.append((i, t, m, g.take(both), base.take(both)))
+            out.append((cell_seed(w, t, m), t, m, g.take(both), base.take(both)))
     return out
 
 
@@ -237,8 +246,9 @@ def learned_table(rec: Records, world: str) -> list[dict[str, Any]]:
         return []
     r_dcr, r_slr = interval(rnd, "DCR", N_BOOT, 99), interval(rnd, "SLR", N_BOOT, 98)
     rows = []
-    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[0] == world):
+    for w, t, m in (c for c in rec.cells() if c[0] == world):
         g = rec.grid(w, t, m)
+        i = cell_seed(w, t, m)
         dcr, slr = interval(g, "DCR", N_BOOT, i), interval(g, "SLR", N_BOOT, i)
         learned = dcr[1] > r_dcr[2] and slr[1] > r_slr[2]
         rows.append({"cell": cell_label(m, t), "DCR": fmt(*dcr), "SLR": fmt(*slr), "random DCR": fmt(*r_dcr),
@@ -278,8 +288,9 @@ def cost_table(rec: Records, world: str) -> list[dict[str, Any]]:
 
 def tuning_table(rec: Records) -> list[dict[str, Any]]:
     rows = []
-    for i, (w, t, m) in enumerate(c for c in rec.cells() if c[1] == "tune"):
+    for w, t, m in (c for c in rec.cells() if c[1] == "tune"):
         g = rec.grid(w, t, m)
+        i = cell_seed(w, t, m)
         w_ = [r.get("clone_weight") for r in rec.run_rows(w, t, m)]
         score = (point(g, "DCR") + point(g, "SLR")) / 2
         rows.append({"clone_weight": w_[0] if w_ else "", "seeds": " ".join(map(str, g.seeds)),
@@ -472,7 +483,7 @@ def figures(rec: Records, out: Path) -> list[str]:
                     g = rec.grid(w, t, m, ev)
                     if g is None:
                         continue
-                    p, lo, hi = interval(g, metric, N_BOOT, j)
+                    p, lo, hi = interval(g, metric, N_BOOT, cell_seed(w, t, m))
                     y = j + (0.15 if k else -0.15)
                     ax.errorbar([p], [y], xerr=[[p - lo], [hi - p]], fmt="o", color=colour,
                                 label=None if ev in labelled else ("actor alone" if ev == "alone"
@@ -566,7 +577,7 @@ def build(records_dir: Path) -> str:
           "Regenerate: `make advice-study` (resumable; `ADVICE_JOBS=2` on two cores), then `make advice-records "
           "advice-report`; this page needs only the CSV files beside it.", "",
           f"Statistics: {METHOD_NAME.format(n=N_BOOT)}. Differences pair the scenarios, and are taken on the seeds "
-          "both cells ran (a cell with fewer seeds is not set against the other's extra seeds); P(better) is rliable's probability of improvement on per-episode scores (ties "
+          "both cells ran (a cell with fewer seeds is not set against the other's extra seeds); each cell's resamples are seeded from its name, so a cell added changes no other's interval; P(better) is rliable's probability of improvement on per-episode scores (ties "
           "count a half), with its bootstrap interval. Intervals stay inside each metric's range.", "",
           "## Design and progress", "", *_md(progress_rows(rec), ["world", "transfer", "method", "seeds wanted",
                                                                     "seeds done", "state"]), "",
