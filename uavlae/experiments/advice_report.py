@@ -30,6 +30,7 @@ from uavlae.experiments.advice_stats import (
     fmt,
     grid_from_rows,
     interval,
+    on_shared_seeds,
     point,
     probability_of_improvement,
 )
@@ -219,10 +220,9 @@ def against_plain(rec: Records, world: str) -> list[tuple[int, str, str, Grid, G
     for w, t, m in (c for c in rec.cells() if c[0] == world):
         if (t, m) == ("override", "sac") or t == "tune":
             continue
-        g = rec.grid(w, t, m)
-        both = [s for s in g.seeds if s in base.seeds]
-        if both:
-            out.append((cell_seed(w, t, m), t, m, g.take(both), base.take(both)))
+        pair = on_shared_seeds(rec.grid(w, t, m), base)
+        if pair is not None:
+            out.append((cell_seed(w, t, m), t, m, *pair))
     return out
 
 
@@ -405,10 +405,11 @@ def rung_claim(rec: Records, row: Any) -> None:
     parts, signs = [], []
     for i, transfer in enumerate(("override", "teach")):
         llm, heur = rec.grid("aid", transfer, "sac_llm_amortized"), rec.grid("aid", transfer, "sac_heuristic")
-        if llm is None or heur is None or not set(llm.seeds) & set(heur.seeds):
+        pair = on_shared_seeds(llm, heur) if llm is not None and heur is not None else None
+        if pair is None:
             continue
-        both = [s for s in llm.seeds if s in heur.seeds]
-        x, y = llm.take(both), heur.take(both)
+        x, y = pair
+        both = x.seeds
         d = {metric: difference(x, y, metric, N_BOOT, 20 + i) for metric in ("DCR", "SLR")}
         parts.append(f"{TRANSFERS[transfer]}, seeds {' '.join(map(str, both))}: ΔDCR {fmt(*d['DCR'])}, "
                      f"ΔSLR {fmt(*d['SLR'])}")

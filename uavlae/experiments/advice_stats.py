@@ -53,6 +53,13 @@ class Grid:
         return Grid(seeds, *(getattr(self, f)[rows] for f in FIELDS))
 
 
+def on_shared_seeds(x: Grid, y: Grid) -> tuple[Grid, Grid] | None:
+    """``x`` and ``y`` cut to the seeds both ran (in ``x``'s order), for a paired comparison;
+    None when they share none."""
+    both = [s for s in x.seeds if s in y.seeds]
+    return (x.take(both), y.take(both)) if both else None
+
+
 def grid_from_rows(rows: list[dict]) -> Grid:
     """Episode rows (``seed``, ``scenario``, ``data_collected``, ``data_total``, ``collided``,
     ``landed``, ``rz_speeding``, ``energy_used``, ``energy_total``) -> a Grid. Every seed must
