@@ -41,6 +41,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from uavlae.envs.metrics import EpisodeTracker, aggregate
 from uavlae.policies.override import POLICY, OverridePolicy, Pending
+from uavlae.policies.safety import SafetyFilter, SafetyStats, apply_filter
 
 NestedKey = str | tuple[str, ...]
 
@@ -51,6 +52,7 @@ TRANSITION_KEYS: tuple[NestedKey, ...] = (
     "done", "terminated", "truncated",
     ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done"),
     ("next", "terminated"), ("next", "truncated"), ("next", "events"), ("next", "reward_terms"),
+    ("safety", "changed"), ("safety", "delta"), ("next", "safety_penalty"),
 )
 
 __all__ = ["TRANSITION_KEYS", "UAVCollector", "UniformReplayBuffer", "make_replay_buffer"]
@@ -109,6 +111,11 @@ class UAVCollector:
         exploration_type: the policy acts under it (``RANDOM``: sampled actions).
         seed: seeds the random warm-up policy.
         max_episodes_per_row: passed to the episode tracker.
+        safety: a :class:`~uavlae.policies.safety.SafetyFilter` that every executed action goes
+            through (the actor's, an advisor's, the warm-up's); the transition records
+            ``("safety", "changed")`` and ``("safety", "delta")`` (|Δv|, m/s), and with
+            ``penalty > 0`` the reward loses ``penalty * delta / v_max``
+            (``("next", "safety_penalty")``).
     """
 
     def __init__(
@@ -124,6 +131,7 @@ class UAVCollector:
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         seed: int = 0,
         max_episodes_per_row: int | None = None,
+        safety: SafetyFilter | None = None,
     ):
         if len(env.batch_size) != 1:
             raise ValueError(f"UAVCollector needs an env with batch_size [B], got {list(env.batch_size)}")
@@ -145,6 +153,9 @@ class UAVCollector:
         self.frames = 0
         self.batches = 0
         self._td: TensorDictBase | None = None
+        self.safety = safety
+        self.safety_stats = SafetyStats()  # since the last logged batch
+        self.safety_totals = SafetyStats()  # over the run
 
     # ------------------------------------------------------------------ stepping
     def _reset(self) -> None:
@@ -178,8 +189,15 @@ class UAVCollector:
                 td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
             else:
                 td = self.policy.finish(td, handle.pending)
+        if self.safety is not None:
+            self._filter(td)
         td = self.env.step(td)
         nxt = td.get("next")
+        if self.safety is not None and self.safety.cfg.penalty > 0:
+            # the filter's change is priced in the reward, so the actor learns not to lean on it
+            pen = self.safety.cfg.penalty * td.get(("safety", "delta")) / self.env.cfg.motion.v_max
+            nxt.set("safety_penalty", pen.reshape(nxt.get("reward").shape))
+            nxt.set("reward", nxt.get("reward") - nxt.get("safety_penalty"))
         abort = td.get("override_abort").reshape(self.B, 1)
         if bool(abort.any()):
             # paper §5.3: no valid LLM action after the attempts ends the episode; it is cut
@@ -194,6 +212,11 @@ class UAVCollector:
         self._td = self.env.maybe_reset(step_mdp(td, keep_other=False, exclude_action=True))
         self.frames += self.B
         return out
+
+    def _filter(self, td: TensorDictBase) -> None:
+        apply_filter(self.safety, td)
+        for stats in (self.safety_stats, self.safety_totals):
+            stats.add(td.get(("safety", "changed")), td.get(("safety", "delta")))
 
     def step(self) -> TensorDictBase:
         """One env step of every row: returns the transition ``[B]`` (with ``"next"``)."""
@@ -254,6 +277,8 @@ class UAVCollector:
         }
         if _has_extra_state(self.policy):
             out["policy_extra"] = self.policy.get_extra_state()
+        if self.safety is not None:
+            out["safety"] = {"since_log": self.safety_stats.state_dict(), "run": self.safety_totals.state_dict()}
         return out
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -273,6 +298,9 @@ class UAVCollector:
         self.tracker._chunks = [dict(recs)] if n else []
         if "policy_extra" in state and _has_extra_state(self.policy):
             self.policy.set_extra_state(state["policy_extra"])
+        if state.get("safety") is not None:
+            self.safety_stats.load_state_dict(state["safety"]["since_log"])
+            self.safety_totals.load_state_dict(state["safety"]["run"])
 
     def shutdown(self) -> None:
         """Close the policy's advisor (its client and any local server it started)."""

@@ -35,12 +35,14 @@ from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
 from uavlae.factories import (
-    CONF_DIR, log_evaluation, make_controller, make_env, make_learner, run_metadata, without_hydra_output,
+    CONF_DIR, log_evaluation, make_controller, make_env, make_learner, make_safety_filter, make_safety_filter_config,
+    run_metadata, without_hydra_output,
 )
 from uavlae.files import dump_json
 from uavlae.lifecycle import flatten_keys
 from uavlae.llm_alone import LLMAloneEvaluation
 from uavlae.policies.override import OverridePolicy
+from uavlae.policies.safety import FilteredPolicy
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +169,11 @@ class Evaluation:
         """``policy`` flies the set; the records, aggregates and pictures go to ``out_dir``."""
         override = isinstance(policy, OverridePolicy)  # its counters come back with the metrics
         if not self.chunked:
+            if isinstance(policy, FilteredPolicy):
+                policy.reset()  # this flight's interventions only
             agg = self.evaluator.run(policy, out_dir, title=title)
+            if isinstance(policy, FilteredPolicy):  # the pilot's filter: how often and how much it acted
+                return Flight(agg, {f"safety/{k}": v for k, v in policy.stats.snapshot().items()})
             return Flight(agg, policy.counters() if override else {})
         ev = self._chunked(policy, out_dir)
         res = ev.run()
@@ -200,11 +206,14 @@ def make_evaluation(cfg: DictConfig, env_cfg: EnvConfig, scenarios: list[Scenari
                       shard=int(tr.eval_shard), shards=int(tr.eval_shards), fingerprint=fingerprint)
 
 
-def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: Any = None) -> Any:
-    """Who flies an evaluation: a learner's actor alone (deterministic: the evaluator's
-    exploration type; no override, no noise), else the controller ``cfg.controller`` names."""
+def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: Any = None,
+               safety_cfg: Any = None) -> Any:
+    """Who flies an evaluation: a learner's actor (deterministic: the evaluator's exploration
+    type; no override, no noise), through the safety filter of ``safety_cfg`` when its mode is
+    not ``off`` (the deployed pilot), else the controller ``cfg.controller`` names."""
     if learner is not None:
-        return learner.actor
+        safety = make_safety_filter(safety_cfg, env_cfg)
+        return learner.actor if safety is None else FilteredPolicy(learner.actor, safety)
     return make_controller(cfg, env_cfg, action_spec=action_spec)
 
 
@@ -280,6 +289,16 @@ class Target:
     state: dict[str, Any] | None = None
     saved: DictConfig | None = None
     run_dir: Path | None = None
+    safety: Any = None  # the safety_filter node the actor flies through (mode off: the actor alone)
+
+
+def safety_of(cfg: DictConfig, saved: DictConfig | None, task_overrides: Sequence[str]) -> Any:
+    """The ``safety_filter`` an evaluated actor flies through: the command line's when it names
+    any ``safety_filter.*`` key, else the one the run was trained with (none recorded: off)."""
+    named = any(o.split("=", 1)[0].lstrip("+~").startswith("safety_filter") for o in task_overrides)
+    if named or saved is None:
+        return cfg.get("safety_filter")
+    return saved.get("safety_filter")
 
 
 def _target(cfg: DictConfig, overrides: Mapping[str, Any]) -> Target:
@@ -319,7 +338,7 @@ def _flyer(cfg: DictConfig, t: Target, evaluation: Evaluation) -> Any:
         probe = make_env(t.env_cfg, 1, seed=0, device=cfg.device)
         learner = make_learner(t.saved.algo, probe)  # type: ignore[union-attr]
         learner.load_state_dict(t.state["learner"])
-    return make_flyer(cfg, t.env_cfg, evaluation.evaluator.env.action_spec, learner)
+    return make_flyer(cfg, t.env_cfg, evaluation.evaluator.env.action_spec, learner, t.safety)
 
 
 def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> dict[str, float]:
@@ -336,11 +355,14 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     tr = cfg.trainer  # evaluation settings come from this command line (defaults: the trainer's)
     overrides = env_overrides(cfg.env, task_overrides)
     t = _target(cfg, overrides)
+    t.safety = safety_of(cfg, t.saved, task_overrides)
+    filtered = t.state is not None and make_safety_filter_config(t.safety).mode != "off"
     spec = json.loads(json.dumps({
         "checkpoint": str(t.file) if t.file else None, "frames": t.frames, "method": t.method,
         "env_overrides": {k: overrides[k] for k in sorted(overrides)}, "eval_set": tr.eval_set,
         "eval_episodes": int(tr.eval_episodes), "eval_seed": int(tr.eval_seed), "eval_max_steps": tr.eval_max_steps,
         "seed": int(cfg.seed),
+        **({"safety_filter": OmegaConf.to_container(t.safety, resolve=True)} if filtered else {}),
     }, default=str))
     done = _done(t.out / "evaluation.json", spec) if cfg.experiment.reuse else None
     if done is not None:

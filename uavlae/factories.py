@@ -26,6 +26,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
+from uavlae.policies.safety import make_safety_filter, make_safety_filter_config  # noqa: F401  (a factory of its own group)
 from uavlae.policies.student import StudentConfig
 from uavlae.validation import StrictModel, error_lines
 
@@ -200,7 +201,7 @@ def validate_config(cfg: DictConfig) -> None:
     root = {k: cfg[k] for k in RunConfig.model_fields}
     run = _validate(RunConfig, root, "config")
     known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "greedy",
-                                           "experiment"}
+                                           "experiment", "safety_filter"}
     unknown = sorted(set(cfg.keys()) - known - {"hydra"})
     if unknown:
         raise ValueError(f"unknown top-level config keys {unknown}")
@@ -214,6 +215,7 @@ def validate_config(cfg: DictConfig) -> None:
 
     make_heuristic_config(cfg.heuristic)
     make_greedy_config(cfg.greedy)
+    make_safety_filter_config(cfg.get("safety_filter"))
     if run.controller == "learner":
         if cfg.get("algo") is None:
             raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo|wang|theile)")

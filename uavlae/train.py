@@ -58,6 +58,7 @@ from uavlae.factories import (
     make_learner,
     make_logger,
     make_policy,
+    make_safety_filter,
     make_trainer_config,
     check_device,
     redact_secrets,
@@ -69,6 +70,7 @@ from uavlae.files import atomic_write, train_eval_dir
 from uavlae.lifecycle import RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, flatten_keys, lock_name, plan
 from uavlae.policies.override import OverridePolicy
 from uavlae.policies.random import UniformRandomPolicy
+from uavlae.policies.safety import FilteredPolicy, SafetyFilter
 from uavlae.progress import progress_for
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
@@ -208,6 +210,7 @@ class Training:
     replay: Any
     updates: Updates | None
     counters: dict[str, Any]
+    safety: SafetyFilter | None = None  # the deployed pilot's filter (safety_filter.mode not off)
     bar: Any = None
     last_eval: dict[str, float] = field(default_factory=dict)
     train_logs: dict[str, float] = field(default_factory=dict)
@@ -271,16 +274,28 @@ class Training:
         self.logger.log_metrics({
             **_prefixed("train", self.train_logs), **_prefixed("episode", episodes),
             **(_prefixed("override", self.collector.override_stats(reset=True)) if advised else {}),
+            **(_prefixed("safety", self.collector.safety_stats.snapshot(reset=True)) if self.collector.safety else {}),
             "time/fps": (self.frames - self.frames_start) / max(elapsed, 1e-9), "time/update_s": update_s,
             "time/update_overlap_s": overlap_s, "train/updates": c["updates"], "train/episodes": c["episodes"],
             "train/replay_size": len(self.replay) if self.replay is not None else 0,
         }, step=self.frames)
 
     def evaluate(self) -> None:
+        """The deployed policy on the evaluation set (``eval/``): the actor alone, or with
+        ``safety_filter`` on, the actor through its filter, and then the actor alone beside it
+        (``eval_actor/``)."""
         out = train_eval_dir(self.run_dir, self.frames)
-        flight = self.evaluation.fly(self.learner.actor, out, title=f"{self.cfg.name} @ {self.frames} frames")
-        self.last_eval = flight.metrics
-        self.logger.log_metrics({**_prefixed("eval", flight.metrics), "eval/episodes_trained": self.counters["episodes"]},
+        title = f"{self.cfg.name} @ {self.frames} frames"
+        if self.safety is None:
+            flight = self.evaluation.fly(self.learner.actor, out, title=title)
+            self.last_eval = flight.metrics
+        else:
+            pilot = FilteredPolicy(self.learner.actor, self.safety)
+            flight = self.evaluation.fly(pilot, out, title=f"{title}, filtered")
+            self.last_eval = {**flight.metrics, **flight.stats}
+            alone = self.evaluation.fly(self.learner.actor, out / "actor_alone", title=f"{title}, actor alone")
+            self.last_eval.update(_prefixed("actor", alone.metrics))
+        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"]},
                                 step=self.frames)
         self.logger.log_images(_trajectory_images(out), step=self.frames)
         self.counters["last_eval_frames"] = self.frames
@@ -358,6 +373,8 @@ def finish(t: Training) -> dict[str, Any]:
     }
     advised = cfg.advisor.kind != "none"
     cost = t.policy.cost() if advised else {}  # training's: measured, not replayed; before the advised evaluation
+    if t.collector.safety is not None:
+        final.update(_prefixed("safety/train", t.collector.safety_totals.snapshot()))
     if advised:
         final.update(_prefixed("override", _deterministic_counts(t.policy.run_totals())))
         final.update(_prefixed("cost", cost))
@@ -373,7 +390,7 @@ def finish(t: Training) -> dict[str, Any]:
         "full_run_frames": full_run_frames(), "updates": c["updates"], "train_s": train_s,
         "fps": t.frames / train_s if train_s else None, "update_s": c["update_s"], "overlap_s": c["overlap_s"],
         "baselines_s": time.perf_counter() - t_base, "eval_episodes": len(t.evaluation.scenarios),
-        "metrics": {f"{cfg.name} (trained actor)": t.last_eval, **advised_row(final, str(cfg.name)), **baseline_rows(final)},
+        "metrics": {**_actor_rows(t), **advised_row(final, str(cfg.name)), **baseline_rows(final)},
         "advisor_kind": str(cfg.advisor.kind), "override": t.policy.run_totals() if advised else None,
         "cost": {**cost, "currency": t.policy.currency()} if cost else None,
         "pictures": pictures(t.run_dir, t.frames),
@@ -381,6 +398,15 @@ def finish(t: Training) -> dict[str, Any]:
     log.info("%s done at %d frames: %s", cfg.name, t.frames,
              {k: round(t.last_eval.get(k, float("nan")), 4) for k in PAPER_METRICS})
     return final
+
+
+def _actor_rows(t: Training) -> dict[str, dict[str, float]]:
+    """The summary's rows of the trained actor: alone, or through its safety filter and alone."""
+    if t.safety is None:
+        return {f"{t.cfg.name} (trained actor)": t.last_eval}
+    alone = {k.removeprefix("actor/"): v for k, v in t.last_eval.items() if k.startswith("actor/")}
+    pilot = {k: v for k, v in t.last_eval.items() if not k.startswith(("actor/", "safety/"))}
+    return {f"{t.cfg.name} (actor + safety filter)": pilot, f"{t.cfg.name} (actor alone)": alone}
 
 
 def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
@@ -432,7 +458,10 @@ def build_training(cfg: DictConfig, run_dir: Path, logger: Any, evaluation: Eval
     seed_everything(seed)
     env = make_env(cfg.env, tr.env_batch_size, seed=seed, device=cfg.device, compile_step=tr.compile_env)
     learner = make_learner(cfg.algo, env)
-    policy = make_policy(cfg, learner.behaviour, make_env_config(cfg.env))
+    env_cfg = make_env_config(cfg.env)
+    policy = make_policy(cfg, learner.behaviour, env_cfg)
+    safety = make_safety_filter(cfg.get("safety_filter"), env_cfg)
+    in_training = safety is not None and safety.cfg.mode == "train_and_deploy"
     replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=seed) if learner.off_policy else None
     counters: dict[str, Any] = {"frames": 0, "episodes": 0, "batches": 0, "updates": 0, "utd_debt": 0.0,
                                 "next_eval": tr.eval_every_frames or tr.total_frames,
@@ -442,9 +471,10 @@ def build_training(cfg: DictConfig, run_dir: Path, logger: Any, evaluation: Eval
     # init_random_frames would then stack steps with different keys
     collector = UAVCollector(env, policy, frames_per_batch=tr.frames_per_batch, total_frames=tr.total_frames,
                              init_random_frames=tr.init_random_frames if learner.off_policy else 0,
-                             keep_keys=TRANSITION_KEYS, seed=seed)
+                             keep_keys=TRANSITION_KEYS, seed=seed, safety=safety if in_training else None)
     updates = Updates(learner, replay, tr, counters) if learner.off_policy else None
-    t = Training(cfg, tr, run_dir, logger, evaluation, env, learner, policy, collector, replay, updates, counters)
+    t = Training(cfg, tr, run_dir, logger, evaluation, env, learner, policy, collector, replay, updates, counters,
+                 safety)
     if ckpt:
         _restore(t, ckpt)
     t.frames_start = t.frames

@@ -42,6 +42,9 @@ from torch import Tensor
 from uavlae.envs import physics as ph
 from uavlae.envs.config import EnvConfig, make_env_config
 from uavlae.policies.controller import StateController
+from uavlae.policies.safety import EPS as _EPS
+from uavlae.policies.safety import blocked as _blocked
+from uavlae.policies.safety import choose, inflate as _inflate, picked, screen
 from uavlae.validation import StrictModel, parse_model
 
 # raw state entries the heuristic reads (docs/env_contract.md)
@@ -49,7 +52,6 @@ STATE_IN_KEYS = (
     "position", "energy_left", "step", "ge_pos", "ge_remaining", "ge_mask", "ou_pos", "ou_vel",
     "ou_mask", "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask", "landing", "takeoff",
 )
-_EPS = 1e-3  # metres: keeps a point strictly outside the rectangle it is measured from
 
 
 class HeuristicConfig(StrictModel):
@@ -96,18 +98,6 @@ class HeuristicConfig(StrictModel):
 def make_heuristic_config(cfg: Any = None, **overrides: Any) -> HeuristicConfig:
     """Build a :class:`HeuristicConfig` from a mapping / OmegaConf node; ``ValueError`` names the field."""
     return parse_model(HeuristicConfig, cfg, prefix="heuristic", title="heuristic", **overrides)
-
-
-def _inflate(rects: Tensor, margin: Tensor) -> Tensor:
-    # (x0 - m, y0 - m, x1 + m, y1 + m), margin broadcast over [..., P]
-    m = margin.unsqueeze(-1)
-    sign = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=rects.dtype, device=rects.device)
-    return rects + m * sign
-
-
-def _blocked(p0: Tensor, p1: Tensor, rects: Tensor, margin: Tensor, mask: Tensor) -> Tensor:
-    """True where the segment p0 -> p1 meets any rectangle inflated by ``margin`` (per rectangle)."""
-    return ph.segment_hits_rects(p0, p1, _inflate(rects, margin), mask).any(-1)
 
 
 class HeuristicPolicy(StateController):
@@ -401,77 +391,27 @@ class HeuristicPolicy(StateController):
 
     def _screen(
         self, s: dict[str, Tensor], p: Tensor, cand: Tensor, rects: Tensor, rmask: Tensor, goal: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Candidates [B, C, 2] after the RZ cap; whether each is feasible, OU-safe and turn-proof; its OU clearance."""
-        c, ec = self.cfg, self.env_cfg
-        m, a = ec.motion, ec.area
-        dt = p.dtype
-        pc = p.unsqueeze(1).expand_as(cand)
-
-        # RZ: a segment that touches an RZ flies at most margin * v_limit (a prefix of it stays legal)
-        rz, rz_mask = s["rz"].to(dt), s["rz_mask"]
-        rz_m = torch.full_like(rz[..., 0], c.rz_inflate).unsqueeze(1)
-        in_rz = _blocked(pc, pc + cand * m.t_fly, rz.unsqueeze(1), rz_m, rz_mask.unsqueeze(1))
-        spd = torch.linalg.vector_norm(cand, dim=-1, keepdim=True)
-        cap = c.rz_speed_margin * m.v_limit
-        scale = torch.where(in_rz.unsqueeze(-1) & (spd > cap), cap / spd.clamp_min(1e-9), torch.ones_like(spd))
-        cand = cand * scale
-        end = pc + cand * m.t_fly
-
-        # static safety: clear of BZ/NFZ by filter_clearance (less when already nearer), inside the area
-        d_r = ph.point_rect_distance(p, rects, rmask)  # [B, P]
-        fm = torch.minimum(torch.full_like(d_r, c.filter_clearance), (d_r - _EPS).clamp_min(0.0))
-        hit = _blocked(pc, end, rects.unsqueeze(1), fm.unsqueeze(1), rmask.unsqueeze(1))
+    ) -> Any:
+        """Candidates [B, C, 2] after the RZ cap; whether each is feasible, OU-safe and turn-proof; its OU
+        clearance (:func:`uavlae.policies.safety.screen`, the safety filter's screen)."""
+        a = self.env_cfg.area
+        # every step ends this far inside the area (less where the DCU or its goal is nearer the edge)
         edge = torch.minimum(
             ph.boundary_distance(p, a.x_size, a.y_size), ph.boundary_distance(goal, a.x_size, a.y_size)
-        ).clamp_max(c.boundary_margin).unsqueeze(-1)
-        inside = (
-            (end[..., 0] >= edge) & (end[..., 0] <= a.x_size - edge)
-            & (end[..., 1] >= edge) & (end[..., 1] <= a.y_size - edge)
-        )
-        feasible = ~hit & inside  # [B, C]; hovering is always feasible
-
-        # visible OUs (perception radius only), assumed to keep their last velocity over the flight phase
-        ou_pos, ou_vel = s["ou_pos"].to(dt), s["ou_vel"].to(dt)
-        d_now = torch.linalg.vector_norm(ou_pos - p.unsqueeze(-2), dim=-1)  # [B, K]
-        visible = (s["ou_mask"] & (d_now <= ec.safety.perception_radius)).unsqueeze(1)
-        appr = ph.closest_approach(pc, cand, ou_pos.unsqueeze(1), ou_vel.unsqueeze(1), m.t_fly)  # [B, C, K]
-        # safe: the closest approach keeps the safety distance, or at least does not shrink below now
-        need = torch.minimum(torch.full_like(d_now, c.ou_safety_distance), d_now - _EPS).unsqueeze(1)
-        ou_ok = ((appr >= need) | ~visible).all(-1)
-        clear = torch.where(visible, appr, torch.full_like(appr, math.inf)).amin(-1)
-        # turn-proof: |DCU(s) - OU(0)| - v_max s >= r_coll + margin at sampled s in [0, t_fly]
-        ts = torch.linspace(0.0, m.t_fly, c.ou_robust_samples, dtype=dt, device=p.device)
-        r0 = (pc.unsqueeze(-2) - ou_pos.unsqueeze(1)).unsqueeze(-2)  # [B, C, K, 1, 2]
-        track = r0 + cand[:, :, None, None, :] * ts.view(-1, 1)  # [B, C, K, S, 2]
-        slack = torch.linalg.vector_norm(track, dim=-1) - m.v_max * ts  # OUs fly at most v_max
-        proof = ((slack >= ec.safety.r_coll + c.ou_robust_margin).all(-1) | ~visible).all(-1)
-        return cand, feasible, ou_ok, proof, clear
+        ).clamp_max(self.cfg.boundary_margin)
+        return screen(s, p, cand, rects, rmask, edge, self.cfg, self.env_cfg)
 
     def _filter(
         self, s: dict[str, Tensor], p: Tensor, v_des: Tensor, rects: Tensor, rmask: Tensor, goal: Tensor
     ) -> tuple[Tensor, Tensor]:
         """The executed velocity and whether it differs from the (RZ-capped) desired one."""
-        cand, feasible, ou_ok, proof, _ = self._screen(s, p, v_des.unsqueeze(1), rects, rmask, goal)
-        v = cand[:, 0]
-        bad = ~(feasible & ou_ok & proof)[:, 0]
+        first = self._screen(s, p, v_des.unsqueeze(1), rects, rmask, goal)
+        v = first.cand[:, 0]
+        bad = ~(first.feasible & first.ou_ok & first.proof)[:, 0]
         if bool(bad.any()):  # only those rows search the ring of candidates
             rows = bad.nonzero().squeeze(-1)
             sub = {k: t[rows] for k, t in s.items()}
             vd = v_des[rows]
-            cand, feasible, ou_ok, proof, clear = self._screen(
-                sub, p[rows], self._candidates(vd), rects[rows], rmask[rows], goal[rows]
-            )
-            dev = torch.linalg.vector_norm(cand - vd.unsqueeze(1), dim=-1)
-            ninf = torch.full_like(dev, -math.inf)
-            safe = feasible & ou_ok
-            # the turn-proof safe candidate nearest the wish; else the safe one nearest the wish;
-            # else the feasible one with the largest predicted closest approach
-            pick_proof = torch.where(safe & proof, -dev, ninf).argmax(-1)
-            pick_safe = torch.where(safe, -dev, ninf).argmax(-1)
-            pick_best = torch.where(feasible, clear - 1e-3 * dev, ninf).argmax(-1)
-            pick = torch.where(
-                (safe & proof).any(-1), pick_proof, torch.where(safe.any(-1), pick_safe, pick_best)
-            )
-            v = v.index_copy(0, rows, cand.gather(1, pick.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1))
+            sc = self._screen(sub, p[rows], self._candidates(vd), rects[rows], rmask[rows], goal[rows])
+            v = v.index_copy(0, rows, picked(sc, choose(sc, vd)))
         return v, bad
