@@ -391,3 +391,42 @@ def test_amortized_sac_llm_advises_every_trigger_and_resumes_by_replay(tmp_path,
     assert resumed.pop("wall_s") > 0 and straight.pop("wall_s") > 0
     assert _replayed(resumed) == _replayed(straight)
     assert resumed["cost/llm_calls"] == 0  # all of it from the cache
+
+
+def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path):
+    """A run trained through the safety filter: the filtered action is stored and counted, the
+    evaluation flies the actor through its filter and alone, the export is the pilot (actor and
+    filter in one program) and `uavlae.fly --all` reproduces both evaluations exactly."""
+    from uavlae.envs import make_env_config, world
+    from uavlae.export import PILOT_STATE_KEYS, export_checkpoint
+    from uavlae.fly import PILOT_STATE_KEYS as FLY_KEYS, load_actor, main as fly_main, perceived, scenario_tensors
+    from uavlae.policies.safety import SafetyFilter
+
+    assert FLY_KEYS == PILOT_STATE_KEYS
+    run_dir = tmp_path / "filtered"
+    final = _run("sac", run_dir, "safety_filter.mode=train_and_deploy", "trainer.eval_max_steps=null",
+                 "trainer.eval_episodes=3")
+    assert 0 <= final["safety/train/intervention_rate"] <= 1 and final["safety/train/rows"] == 128
+    assert "eval/actor/DCR" in final and "eval/safety/intervention_rate" in final
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert {"sac (actor + safety filter)", "sac (actor alone)"} <= set(summary["metrics"])
+
+    out = export_checkpoint(run_dir, tmp_path / "pilot.pt2")
+    pilot, meta = load_actor(out)
+    assert meta["kind"] == "pilot" and meta["safety_filter"]["mode"] == "train_and_deploy"
+    # the exported filter acts as the in-process one on the same perceived state
+    env_cfg = make_env_config(meta["env"])
+    scen = json.loads((run_dir / "eval_set.json").read_text())
+    state = world.initial_state(scenario_tensors(scen[0], env_cfg), env_cfg)
+    state["position"] = torch.tensor([[60.0, 30.0]])
+    s = perceived(state, env_cfg)
+    s_full = dict(s)
+    s_full.update(world.nearest_distances(s_full, env_cfg))
+    raw = pilot(s, torch.tensor(False))
+    expected, _, _ = SafetyFilter(env_cfg, meta["safety_filter"]).filter_action(s_full, raw)
+    torch.testing.assert_close(pilot(s, torch.tensor(True)), expected)
+
+    for extra, prefix in (([], "eval/"), (["--no-filter"], "eval/actor/")):
+        res = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", *extra])
+        for k in ("DCR", "CR", "SLR", "RVR", "ECR"):
+            assert res["metrics"][k] == pytest.approx(final[prefix + k], abs=1e-6), (prefix, k)

@@ -83,10 +83,62 @@ def export_actor(learner: Any, action_spec: Any, path: str | Path, meta: dict[st
     return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
 
 
-def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
+# The raw state a pilot is given (docs/env_contract.md), less the nearest-distance entries it
+# computes itself: what the DCU knows of its world, with the OUs beyond the perception radius masked.
+PILOT_STATE_KEYS = (
+    "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask", "ge_pos", "ge_mask", "takeoff", "landing", "data_total",
+    "position", "velocity", "energy_used", "energy_left", "slot_data", "data_collected", "step", "ge_remaining",
+    "ou_pos", "ou_vel", "ou_mask", "served_ge",
+)
+
+
+class Pilot(nn.Module):
+    """The deployed pilot: ``(state, use_filter) -> action``. It builds the observation from the
+    raw state (the env's own :class:`~uavlae.envs.world.ObservationLayout`), lets the actor act
+    deterministically, and passes the action through the safety filter where ``use_filter`` (a
+    bool tensor) holds: both are computed, so the program has no data-dependent branch."""
+
+    def __init__(self, actor: DeterministicActor, env_cfg: Any, safety: Any):
+        super().__init__()
+        from uavlae.envs.world import ObservationLayout
+
+        self.actor = actor
+        self.safety = safety
+        self.env_cfg = env_cfg
+        self.layout = ObservationLayout(env_cfg)
+
+    def forward(self, state: dict[str, torch.Tensor], use_filter: torch.Tensor) -> torch.Tensor:
+        from uavlae.envs.world import nearest_distances
+
+        s = dict(state)
+        s.update(nearest_distances(s, self.env_cfg))
+        action = self.actor(self.layout.build(s))
+        filtered, _, _ = self.safety.filter_action(s, action)
+        return torch.where(use_filter, filtered, action)
+
+
+def export_pilot(learner: Any, action_spec: Any, env_cfg: Any, safety: Any, path: str | Path,
+                 meta: dict[str, Any]) -> Path:
+    """Export the actor and its safety filter as one :class:`Pilot` program (any batch size)."""
+    from uavlae.envs.world import initial_state
+    from uavlae.envs.scenario import sample_scenarios
+
+    module = Pilot(deterministic_actor_module(learner, action_spec), env_cfg, safety).eval()
+    scen = sample_scenarios(env_cfg, 2, torch.Generator().manual_seed(0))
+    example = {k: v for k, v in initial_state(scen.to_dict(), env_cfg).items() if k in PILOT_STATE_KEYS}
+    batch = torch.export.Dim("batch", min=1)
+    dynamic = {"state": {k: {0: batch} for k in example}, "use_filter": None}
+    with torch.no_grad():
+        program = torch.export.export(module, (example, torch.tensor(True)), dynamic_shapes=dynamic)
+    return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
+
+
+def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any = None) -> Path:
+    """Export a checkpoint's actor: with a safety filter (``safety_cfg``, else the run's own
+    ``safety_filter``; mode not ``off``) as a :class:`Pilot`, else the actor alone."""
     from uavlae.checkpoint import load_checkpoint
     from uavlae.envs import make_env_config
-    from uavlae.factories import make_env, make_learner
+    from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 
     state, file = load_checkpoint(checkpoint)
     saved = OmegaConf.create(state["config"])
@@ -94,23 +146,39 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     env = make_env(env_cfg, 1, seed=0)
     learner = make_learner(saved.algo, env)
     learner.load_state_dict(state["learner"])
+    safety_cfg = saved.get("safety_filter") if safety_cfg is None else safety_cfg
+    safety = make_safety_filter(safety_cfg, env_cfg)
     meta = {
+        "kind": "actor" if safety is None else "pilot",
         "env": env_cfg.model_dump(mode="json"),
         "algo": saved.algo.name,
         "name": saved.name,
         "frames": int(state["counters"]["frames"]),
         "checkpoint": str(file),
         "obs_dim": int(env.observation_spec["observation"].shape[-1]),
+        # the evaluator's OU random stream, so `uavlae.fly --all` reproduces its numbers
+        "eval_seed": int(saved.trainer.eval_seed),
+        "eval_max_steps": saved.trainer.get("eval_max_steps"),
         "versions": package_versions(),
     }
-    return export_actor(learner, env.action_spec, out, meta)
+    if safety is None:
+        return export_actor(learner, env.action_spec, out, meta)
+    meta["safety_filter"] = make_safety_filter_config(safety_cfg).model_dump(mode="json")
+    if env_cfg.ego_features and env_cfg.reward.progress_metric == "geodesic":
+        raise ValueError("a pilot reads only what the DCU perceives: env.ego_features with "
+                         "reward.progress_metric=geodesic reads a planner's distance field (a training-only aid)")
+    return export_pilot(learner, env.action_spec, env_cfg, safety, out, meta)
 
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
     if not cfg.checkpoint or not cfg.get("out"):
-        raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2")
-    print(export_checkpoint(cfg.checkpoint, cfg.out))
+        raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2 "
+                         "[safety_filter.mode=deploy]")
+    named = any(o.split("=", 1)[0].lstrip("+~").startswith("safety_filter") for o in HydraConfig.get().overrides.task)
+    print(export_checkpoint(cfg.checkpoint, cfg.out, cfg.safety_filter if named else None))
 
 
 if __name__ == "__main__":

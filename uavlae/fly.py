@@ -1,6 +1,13 @@
-"""Fly an exported actor on a scenario with torch alone (no torchrl, no LLM):
+"""Fly an exported actor or pilot on a scenario with torch alone (no torchrl, no LLM):
 
     python -m uavlae.fly --actor actor.pt2 --scenario scenario.json [--index 0] [--png out.png]
+    python -m uavlae.fly --actor pilot.pt2 --scenario set.json --all [--no-filter]
+
+An actor reads the observation (built here from the embedded env config); a pilot
+(``uavlae.export`` of a run with a safety filter) reads the raw state the DCU perceives and
+flies through its filter (``--no-filter``: its actor alone). ``--all`` flies every scenario of
+the file as one batch with the evaluator's OU random stream, so it reproduces the evaluator's
+pooled metrics.
 
 The scenario file is one scenario object or a list of them (``uavlae.envs.scenario`` JSON, as
 the evaluation sets are saved). The world is the pure-torch ``uavlae.envs.world`` step with the
@@ -76,10 +83,80 @@ def load_actor(path: str | Path) -> tuple[Any, dict[str, Any]]:
     return program.module(), meta
 
 
-def fly(actor: Any, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> dict[str, Any]:
-    """One episode of ``actor`` in ``scenario``; returns the metrics and the trajectory."""
+# the raw state entries an exported pilot takes (uavlae.export.PILOT_STATE_KEYS, kept in step by a test)
+PILOT_STATE_KEYS = (
+    "nfz", "nfz_mask", "rz", "rz_mask", "bz", "bz_mask", "ge_pos", "ge_mask", "takeoff", "landing", "data_total",
+    "position", "velocity", "energy_used", "energy_left", "slot_data", "data_collected", "step", "ge_remaining",
+    "ou_pos", "ou_vel", "ou_mask", "served_ge",
+)
+
+
+def perceived(state: dict[str, torch.Tensor], env_cfg: Any) -> dict[str, torch.Tensor]:
+    """What the DCU knows of ``state``: the pilot's entries, the OUs beyond the perception radius masked."""
+    s = {k: state[k] for k in PILOT_STATE_KEYS}
+    d = torch.linalg.vector_norm(s["ou_pos"] - s["position"].unsqueeze(-2), dim=-1)
+    s["ou_mask"] = s["ou_mask"] & (d <= env_cfg.safety.perception_radius)
+    return s
+
+
+def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True) -> Any:
+    """``state -> action`` for an exported file: an actor reads the observation the env would
+    build, a pilot the perceived raw state (its filter on unless ``use_filter`` is False)."""
     world, _ = _world_modules()
+    if meta.get("kind", "actor") == "pilot":
+        flag = torch.tensor(bool(use_filter))
+        return lambda state: module(perceived(state, env_cfg), flag)
     layout = world.ObservationLayout(env_cfg)
+    return lambda state: module(layout.build(state))
+
+
+def fly_batch(policy: Any, env_cfg: Any, scenarios: list[dict[str, Any]], seed: int = 0,
+              max_steps: int | None = None) -> dict[str, Any]:
+    """Every scenario at once, one row each, as the evaluator flies its set: the same batch, the
+    same OU random stream (``seed``), each row's first episode scored, rows that ended stepped on
+    until all have (their output ignored). Returns per-episode records and the pooled metrics."""
+    world, _ = _world_modules()
+    parts = [scenario_tensors(d, env_cfg) for d in scenarios]
+    scen = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    g = torch.Generator().manual_seed(seed)
+    state = world.initial_state(scen, env_cfg)
+    b = len(scenarios)
+    ended = torch.zeros(b, dtype=torch.bool)
+    keys = ("bz_collision", "nfz_entry", "ou_collision", "rz_speeding", "landed")
+    seen = {k: torch.zeros(b, dtype=torch.bool) for k in keys}
+    final = {k: torch.zeros(b) for k in ("data_collected", "data_total", "energy_used")}
+    length = torch.zeros(b, dtype=torch.int64)
+    with torch.no_grad():
+        for _ in range(int(max_steps or env_cfg.t_max)):
+            state, events, _, _, terminated, truncated = world.world_step(state, policy(state), env_cfg, g)
+            live = ~ended
+            for k in keys:
+                seen[k] |= events[k] & live
+            done = (terminated | truncated) & live
+            for k in final:
+                final[k] = torch.where(done, state[k], final[k])
+            length += live.long()
+            ended |= done
+            if bool(ended.all()):
+                break
+    for k in final:  # rows still flying when the budget ran out
+        final[k] = torch.where(ended, final[k], state[k])
+    collided = seen["bz_collision"] | seen["nfz_entry"] | seen["ou_collision"]
+    metrics = {
+        "DCR": float(final["data_collected"].sum() / final["data_total"].sum()),
+        "CR": float(collided.float().mean()),
+        "SLR": float(seen["landed"].float().mean()),
+        "RVR": float(seen["rz_speeding"].float().mean()),
+        "ECR": float(final["energy_used"].sum()) / (b * env_cfg.energy.e_total),
+    }
+    return {"metrics": metrics, "episodes": b, "length": length.tolist(), "collided": collided.tolist(),
+            "landed": seen["landed"].tolist(), "rz_speeding": seen["rz_speeding"].tolist()}
+
+
+def fly(actor: Any, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> dict[str, Any]:
+    """One episode of ``actor`` (``state -> action``, :func:`policy_of`) in ``scenario``;
+    returns the metrics and the trajectory."""
+    world, _ = _world_modules()
     g = torch.Generator().manual_seed(seed)
     state = world.initial_state(scenario_tensors(scenario, env_cfg), env_cfg)
     path = [state["position"][0].clone()]
@@ -88,7 +165,7 @@ def fly(actor: Any, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> di
     terminated = truncated = torch.zeros(1, dtype=torch.bool)
     with torch.no_grad():
         for _ in range(env_cfg.t_max):
-            action = actor(layout.build(state))
+            action = actor(state)
             state, events, terms, c, terminated, truncated = world.world_step(state, action, env_cfg, g)
             path.append(state["position"][0].clone())
             ret += float(sum(t.sum() for t in terms.values()))
@@ -116,19 +193,33 @@ def fly(actor: Any, env_cfg: Any, scenario: dict[str, Any], seed: int = 0) -> di
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--actor", required=True, help="actor file written by python -m uavlae.export (.pt2)")
+    p.add_argument("--actor", required=True, help="actor or pilot file written by python -m uavlae.export (.pt2)")
     p.add_argument("--scenario", required=True, help="scenario JSON (one object, or a list)")
     p.add_argument("--index", type=int, default=0, help="which scenario of a list")
-    p.add_argument("--seed", type=int, default=0, help="seeds the other UAVs' random motion")
+    p.add_argument("--all", action="store_true",
+                   help="fly every scenario of the list as the evaluator does; the last line is the pooled metrics as JSON")
+    p.add_argument("--no-filter", action="store_true", help="a pilot's actor alone, without its safety filter")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seeds the other UAVs' random motion (default: the run's evaluation seed with --all, else 0)")
     p.add_argument("--png", default=None, help="draw the flight to this PNG (needs matplotlib)")
     args = p.parse_args(argv)
 
     actor, meta = load_actor(args.actor)
     _, config = _world_modules()
     env_cfg = config.make_env_config(meta["env"])
+    if args.no_filter and meta.get("kind", "actor") != "pilot":
+        raise SystemExit(f"--no-filter: {args.actor} is an actor without a safety filter")
+    policy = policy_of(actor, meta, env_cfg, use_filter=not args.no_filter)
     data = json.loads(Path(args.scenario).read_text())
+    if args.all:
+        scenarios = data if isinstance(data, list) else [data]
+        seed = int(meta.get("eval_seed", 0)) if args.seed is None else args.seed
+        out = fly_batch(policy, env_cfg, scenarios, seed=seed, max_steps=meta.get("eval_max_steps"))
+        print(json.dumps({k: v for k, v in out.items() if k != "metrics"}))
+        print(json.dumps(out["metrics"]))
+        return out
     scenario = data[args.index] if isinstance(data, list) else data
-    result = fly(actor, env_cfg, scenario, seed=args.seed)
+    result = fly(policy, env_cfg, scenario, seed=args.seed or 0)
     traj = result.pop("trajectory")
     print(json.dumps(result, indent=1))
     if args.png:
