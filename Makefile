@@ -446,3 +446,42 @@ advice-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.advice records $(ADVICE_ROOT) --out results/advice
 advice-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.advice report results/advice
+
+# ---------------------------------------------------------------------------- the pilot study
+# A pilot worth deploying (uavlae/experiments/README.md, "A pilot worth deploying"): a ladder of
+# recipes in SPEC's world (env=default), each rung adding one ingredient to the one before: the
+# observation in the DCU's frame, the safety filter in training (every run is also flown through
+# the filter at deployment and alone), the Lagrangian constraint, a stronger learner, shaping and
+# teaching from the planner. Screening: 1M frames, the tuning seeds; the verdict: the chosen
+# recipe (+exp=pilot) at 2.5M frames on seeds 0-4, also flown on the held-out set. Every stage is
+# a resumable sweep: run the same command again. PILOT_JOBS: runs side by side (one per core).
+PILOT_EXP_ROOT ?= runs
+PILOT_JOBS ?= 1
+PILOT_TUNE_SEEDS ?= 100,101
+PILOT_SEEDS ?= 0,1,2,3,4
+PILOT = $(TRAIN_SWEEP) +sweep=pilot +profile=quick env=default experiment.root=$(PILOT_EXP_ROOT) hydra/launcher=local \
+	hydra.launcher.n_jobs=$(PILOT_JOBS)
+PILOT_SCREEN = $(PILOT) experiment.point=screen trainer.total_frames=1000000 trainer.replay_capacity=1000000 \
+	seed=$(PILOT_TUNE_SEEDS)
+# each rung: the keys it adds (the ladder: every rung keeps the ones above it)
+RUNG_WORLD = +exp=sac safety_filter.mode=deploy
+RUNG_EGO = $(RUNG_WORLD) env.obs_frame=ego
+RUNG_FILTER = +exp=sac env.obs_frame=ego safety_filter.mode=train_and_deploy
+RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.cost.rz_speeding=1.0
+RUNG_LEARNER = $(RUNG_LAG) algo=sac_lag_ln
+RUNG_SHAPING = $(RUNG_LEARNER) env.reward.progress_weight=1.0 env.reward.progress_metric=geodesic
+.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-lag pilot-screen-learner \
+	pilot-screen-shaping pilot-verdict pilot-records pilot-report
+pilot-study: pilot-screen pilot-verdict pilot-records pilot-report
+pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-lag pilot-screen-learner pilot-screen-shaping
+pilot-screen-frame: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
+	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
+pilot-screen-filter: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_FILTER) experiment.method=sac_ego_filter
+pilot-screen-lag: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_filter
+pilot-screen-learner: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter
+pilot-screen-shaping: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_SHAPING) experiment.method=saclagln_ego_filter_shaped

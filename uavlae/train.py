@@ -295,8 +295,8 @@ class Training:
             self.last_eval = {**flight.metrics, **flight.stats}
             alone = self.evaluation.fly(self.learner.actor, out / "actor_alone", title=f"{title}, actor alone")
             self.last_eval.update(_prefixed("actor", alone.metrics))
-        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"]},
-                                step=self.frames)
+        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
+                                 "eval/train_wall_s": float(self.counters["wall_s"])}, step=self.frames)
         self.logger.log_images(_trajectory_images(out), step=self.frames)
         self.counters["last_eval_frames"] = self.frames
         every = self.tr.eval_every_frames or self.tr.total_frames
