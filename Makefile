@@ -49,6 +49,12 @@ bench-sac: $(STAMP)
 bench-env: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py --compile
 
+# What the safety filter costs: env-steps/s at B = 64 (compiled env) with and without it, side by side
+# -> benchmarks/safety_filter.json
+.PHONY: bench-filter
+bench-filter: $(STAMP)
+	$(BIN)/python benchmarks/safety_filter.py --batches 64 1024 --compile
+
 # Training frames/s of +exp=sac, this checkout against another checkout with its own .venv
 # (e.g. `git worktree add ../base <commit>` and `make setup` there), alternating subprocesses
 # -> benchmarks/train_ab.json
@@ -485,3 +491,10 @@ pilot-screen-learner: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter
 pilot-screen-shaping: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_SHAPING) experiment.method=saclagln_ego_filter_shaped
+# the held-out evaluation set of the verdict: 256 scenarios of SPEC's distribution from a seed used
+# nowhere else (90210); committed, so this only rewrites the same file
+.PHONY: pilot-heldout-set
+pilot-heldout-set: $(STAMP)
+	rm -f results/pilot/heldout_set_256.json
+	$(BIN)/python -c "from uavlae.evaluate import load_or_make_eval_set; from uavlae.envs import make_env_config; \
+		load_or_make_eval_set(make_env_config(None), 'results/pilot/heldout_set_256.json', 256, 90210, sample=True)"
