@@ -491,6 +491,10 @@ pilot-screen-learner: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter
 pilot-screen-shaping: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_SHAPING) experiment.method=saclagln_ego_filter_shaped
+pilot-records: $(STAMP)
+	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
+pilot-report: $(STAMP)
+	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
 # the held-out evaluation set of the verdict: 256 scenarios of SPEC's distribution from a seed used
 # nowhere else (90210); committed, so this only rewrites the same file
 .PHONY: pilot-heldout-set

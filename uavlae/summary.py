@@ -52,8 +52,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     rows = summary["metrics"]
     n_eps = summary.get("eval_episodes")
     lines.append("")
-    who_flies = ("the trained actor flies alone, deterministically" if summary.get("controller", "learner") == "learner"
-                 else f"{summary.get('controller')} flies")
+    filtered = any(k.endswith("(actor + safety filter)") for k in rows)
+    who_flies = (f"{summary.get('controller')} flies" if summary.get("controller", "learner") != "learner"
+                 else "the trained actor flies deterministically, through its safety filter and alone" if filtered
+                 else "the trained actor flies alone, deterministically")
     lines.append(f"The five paper metrics on the fixed evaluation set ({n_eps} episodes, one per scenario; {who_flies}):")
     width = max(len(k) for k in rows) + 2
     lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))

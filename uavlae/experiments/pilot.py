@@ -1,0 +1,259 @@
+"""The pilot study (``make pilot-study``; uavlae/experiments/README.md, "A pilot worth deploying").
+
+Two sub-commands:
+
+- ``records RUNS_DIR --out results/pilot``: what the report needs of every finished run under
+  ``RUNS_DIR/pilot/<stage>/<rung>/seed<k>``, as CSV files that travel with the repository:
+  ``runs.csv`` (one row a run: stage, rung, seed, frames, wall clock, the recipe's keys, the
+  filter's intervention shares, commit), ``episodes.csv`` (one row per evaluation episode: the
+  pilot, i.e. the actor through its filter, and the actor alone, on the selection set and, where
+  flown, on the held-out set; the greedy heuristic and uniform random on the selection set) and
+  ``curves.csv`` (every evaluation during training: frames, training wall clock, the pilot's and
+  the actor's metrics). Records of runs not under ``RUNS_DIR`` are kept.
+- ``report results/pilot``: ``report.md`` from those files alone: per stage and rung, the pilot
+  and the actor alone side by side with stratified-bootstrap intervals over seeds x scenarios
+  (:mod:`uavlae.experiments.advice_stats`), the filter's share, the compute, the time to a pilot
+  (the first evaluation whose pilot meets every floor), and the paired differences between
+  adjacent rungs of the ladder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from uavlae.experiments.advice import EPISODE_COLUMNS, _episodes, _read_json, _read_rows, _scalar, _write_csv
+from uavlae.experiments.advice_stats import METHOD_NAME, METRICS, difference, fmt, grid_from_rows, interval
+from uavlae.files import atomic_write, train_eval_dir
+
+KEY_COLUMNS = ["stage", "rung", "seed"]
+EPISODE_KEYS = [*KEY_COLUMNS, "evaluation", "set", "scenario"]
+# the floors a pilot must meet (ECR: no worse than the greedy heuristic's on the same scenarios)
+FLOORS = {"DCR": (">=", 0.95), "SLR": (">=", 0.90), "CR": ("<=", 0.02), "RVR": ("<=", 0.01)}
+# what the training curves keep: (scalar file under logs/scalars, column)
+CURVE_SCALARS = tuple((f"eval/{m}", m) for m in METRICS) + tuple((f"eval/actor/{m}", f"actor_{m}") for m in METRICS) + (
+    ("eval/train_wall_s", "train_wall_s"), ("eval/safety/intervention_rate", "eval_intervention"),
+    ("safety/intervention_rate", "train_intervention"))
+HELDOUT = {"heldout_pilot": "pilot", "heldout_alone": "alone"}  # <run>/evaluate/<folder> -> evaluation
+
+
+def _filtered(cfg: dict[str, Any]) -> bool:
+    return (cfg.get("safety_filter") or {}).get("mode", "off") != "off"
+
+
+def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]] | None:
+    """(run row, episode rows, curve rows) of a finished run in ``d``; None when unfinished."""
+    if not ((d / "final_metrics.json").is_file() and (d / "config.json").is_file()):
+        return None
+    cfg, final = _read_json(d / "config.json"), _read_json(d / "final_metrics.json")
+    frames = int(final.get("frames", 0))
+    if frames < int(cfg["trainer"]["total_frames"]):
+        return None
+    ex = cfg.get("experiment") or {}
+    key = {"stage": str(ex.get("point")), "rung": str(ex.get("method") or cfg["name"]), "seed": int(cfg["seed"])}
+    meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+    env, sf = cfg["env"], cfg.get("safety_filter") or {}
+    run = {**key, "frames": frames, "wall_s": final.get("wall_s"), "updates": final.get("updates"),
+           "algo": cfg["algo"]["name"], "hidden": cfg["algo"].get("hidden"), "obs_frame": env.get("obs_frame", "world"),
+           "filter": sf.get("mode", "off"), "filter_penalty": sf.get("penalty", 0.0),
+           "progress_weight": env["reward"].get("progress_weight"), "advisor": cfg["advisor"]["kind"],
+           "train_intervention": final.get("safety/train/intervention_rate"),
+           "eval_intervention": final.get("eval/safety/intervention_rate"),
+           "eval_mean_change": final.get("eval/safety/mean_change"),
+           "commit": str((meta.get("git") or {}).get("commit") or "")[:10]}
+    out = train_eval_dir(d, frames)
+    sources = {("alone", "selection"): out / "actor_alone" if _filtered(cfg) else out,
+               ("heuristic", "selection"): d / "eval" / "baseline_heuristic",
+               ("random", "selection"): d / "eval" / "baseline_random"}
+    if _filtered(cfg):
+        sources[("pilot", "selection")] = out
+    for folder, evaluation in HELDOUT.items():
+        sources[(evaluation, "heldout")] = d / "evaluate" / folder
+    episodes = []
+    for (evaluation, which), folder in sources.items():
+        for i, row in enumerate(_episodes(folder / "episodes.csv")):
+            episodes.append({**key, "evaluation": evaluation, "set": which, "scenario": int(row.get("row", i)),
+                             **{c: row.get(c) for c in EPISODE_COLUMNS}})
+    curves: dict[int, dict[str, Any]] = defaultdict(dict)
+    for name, col in CURVE_SCALARS:
+        for step, value in _scalar(d, name):
+            curves[step][col] = value
+    curve_rows = [{**key, "frames": step, **vals} for step, vals in sorted(curves.items()) if "DCR" in vals]
+    return run, episodes, curve_rows
+
+
+def write_records(root: Path, out: Path) -> dict[str, int]:
+    """Adds the finished runs under ``root/pilot`` to the records in ``out`` (module doc)."""
+    runs, episodes, curves, unfinished = [], [], [], []
+    for cfg_file in sorted((root / "pilot").rglob("config.json")):
+        d = cfg_file.parent
+        if any(p.startswith(".") for p in d.relative_to(root).parts):
+            continue
+        rec = run_record(d)
+        if rec is None:
+            unfinished.append(str(d.relative_to(root)))
+            continue
+        runs.append(rec[0])
+        episodes.extend(rec[1])
+        curves.extend(rec[2])
+    fresh = {(r["stage"], r["rung"], int(r["seed"])) for r in runs}
+
+    def merged(name: str, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        old = [r for r in _read_rows(out / name) if (r["stage"], r["rung"], int(r["seed"])) not in fresh]
+        return old + new
+
+    runs, episodes, curves = merged("runs.csv", runs), merged("episodes.csv", episodes), merged("curves.csv", curves)
+    _write_csv(out / "runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
+    _write_csv(out / "episodes.csv", episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    _write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
+    _write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
+    return {"runs": len(runs), "episodes": len(episodes), "curve_rows": len(curves), "unfinished": len(unfinished)}
+
+
+# ---------------------------------------------------------------------------- the report
+
+
+def meets(metrics: dict[str, float], ecr_ceiling: float | None) -> bool:
+    """Whether pooled ``metrics`` meet every floor (and ECR no worse than ``ecr_ceiling``)."""
+    for m, (op, bound) in FLOORS.items():
+        v = metrics.get(m, math.nan)
+        if not math.isfinite(v) or (v < bound if op == ">=" else v > bound):
+            return False
+    return ecr_ceiling is None or metrics.get("ECR", math.inf) <= ecr_ceiling
+
+
+def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], list[dict[str, str]]]:
+    cells: dict[tuple[str, str, str, str], list[dict[str, str]]] = defaultdict(list)
+    for e in episodes:
+        cells[(e["stage"], e["rung"], e["evaluation"], e["set"])].append(e)
+    return cells
+
+
+def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
+    """The rungs of a stage in the order their runs were recorded (the ladder's order)."""
+    return list(dict.fromkeys(r["rung"] for r in runs if r["stage"] == stage))
+
+
+def _time_to_pilot(curves: list[dict[str, str]], stage: str, rung: str, ecr: float | None) -> str:
+    """Per seed, the first evaluation whose pilot (the actor alone, when unfiltered) meets every floor."""
+    by_seed: dict[str, list[dict[str, str]]] = defaultdict(list)
+    for c in curves:
+        if c["stage"] == stage and c["rung"] == rung:
+            by_seed[c["seed"]].append(c)
+    hits = []
+    for seed, rows in sorted(by_seed.items()):
+        for c in sorted(rows, key=lambda r: int(float(r["frames"]))):
+            vals = {m: float(c[m]) for m in METRICS if c.get(m) not in (None, "")}
+            if meets(vals, ecr):
+                wall = c.get("train_wall_s")
+                hits.append(f"seed {seed}: {int(float(c['frames'])):,} frames"
+                            + (f", {float(wall) / 60:.0f} min" if wall not in (None, "") else ""))
+                break
+    return "; ".join(hits) if hits else f"not reached ({len(by_seed)} runs)"
+
+
+def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dict[str, str]], which: str,
+           ecr: float | None) -> list[str]:
+    lines = ["| rung | seeds | flown | " + " | ".join(METRICS) + " | filter acts (train / eval) | wall (min) |"
+             + (" time to a pilot |" if which == "selection" else ""),
+             "|---|---|---|" + "---|" * len(METRICS) + "---|---|" + ("---|" if which == "selection" else "")]
+    for rung in _order(runs, stage):
+        rr = [r for r in runs if r["stage"] == stage and r["rung"] == rung]
+        wall = sum(float(r["wall_s"] or 0) for r in rr) / max(len(rr), 1) / 60
+        share = " / ".join(f"{float(v):.3f}" if v not in (None, "") else "–"
+                           for v in (rr[0].get("train_intervention"), rr[0].get("eval_intervention")))
+        for evaluation in ("pilot", "alone"):
+            rows = cells.get((stage, rung, evaluation, which))
+            if not rows:
+                continue
+            g = grid_from_rows(rows)
+            vals = [fmt(*interval(g, m)) for m in METRICS]
+            flown = "actor + filter" if evaluation == "pilot" else "actor alone"
+            lines.append(f"| {rung} | {' '.join(map(str, g.seeds))} | {flown} | " + " | ".join(vals)
+                         + f" | {share if evaluation == 'pilot' else ''} | {wall:.0f} |"
+                         + (f" {_time_to_pilot(curves, stage, rung, ecr) if evaluation == 'pilot' else ''} |"
+                            if which == "selection" else ""))
+    return lines
+
+
+def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> list[str]:
+    """Paired differences of each rung against the rung above it, for the pilot and the actor alone."""
+    rungs = _order(runs, stage)
+    lines = ["| rung vs the one above | flown | " + " | ".join(f"Δ{m}" for m in METRICS) + " |",
+             "|---|---|" + "---|" * len(METRICS)]
+    for above, rung in zip(rungs, rungs[1:]):
+        for evaluation in ("pilot", "alone"):
+            a, b = cells.get((stage, rung, evaluation, which)), cells.get((stage, above, evaluation, which))
+            if not a or not b:
+                continue
+            ga, gb = grid_from_rows(a), grid_from_rows(b)
+            both = [s for s in ga.seeds if s in gb.seeds]
+            if not both:
+                continue
+            ga, gb = ga.take(both), gb.take(both)
+            flown = "actor + filter" if evaluation == "pilot" else "actor alone"
+            lines.append(f"| {rung} vs {above} | {flown} | "
+                         + " | ".join(fmt(*difference(ga, gb, m)) for m in METRICS) + " |")
+    return lines
+
+
+def build(records: Path) -> Path:
+    """``report.md`` in ``records`` from its CSV files (module doc)."""
+    runs, episodes, curves = (_read_rows(records / n) for n in ("runs.csv", "episodes.csv", "curves.csv"))
+    cells = _cells(episodes)
+    lines = ["# The pilot study", "",
+             "Generated by `python -m uavlae.experiments.pilot report results/pilot` from the CSV records "
+             "beside it (`make pilot-records` writes them from the runs). SPEC's world (`env=default`), "
+             "B = 64, 0.25 gradient steps a frame, compiled env. Each rung adds one ingredient to the one "
+             "above it (uavlae/experiments/README.md lists the ladder's keys).", "",
+             f"Intervals: {METHOD_NAME.format(n=2000)}. Differences are paired on the seeds both rungs ran "
+             "and on the same scenarios.", "",
+             "Floors of a deployable pilot: " + ", ".join(f"{m} {op} {b}" for m, (op, b) in FLOORS.items())
+             + ", ECR no worse than the greedy heuristic's on the same scenarios.", ""]
+    stages = list(dict.fromkeys(r["stage"] for r in runs))
+    for stage in stages:
+        ref = {ev: cells.get((stage, _order(runs, stage)[0], ev, "selection")) for ev in ("heuristic", "random")}
+        greedy = grid_from_rows(ref["heuristic"]) if ref["heuristic"] else None
+        ecr = interval(greedy, "ECR")[0] if greedy else None
+        for which, title in (("selection", "the selection set (results/eval_set_32.json)"),
+                             ("heldout", "the held-out set (results/pilot/heldout_set_256.json)")):
+            if not any(k[0] == stage and k[3] == which for k in cells):
+                continue
+            lines += [f"## {stage}: {title}", "", *_table(stage, runs, cells, curves, which, ecr), ""]
+            if which == "selection":
+                lines += ["References on the same scenarios (flown in every run; the first rung's copy):", "",
+                          "| policy | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
+                for ev, rows in ref.items():
+                    if rows:
+                        g = grid_from_rows([{**r, "seed": 0} for r in rows if r["seed"] == rows[0]["seed"]])
+                        lines.append(f"| {ev} | " + " | ".join(fmt(*interval(g, m)) for m in METRICS) + " |")
+                lines.append("")
+            lines += [f"### {stage}: what each ingredient moved ({which})", "", *_ladder(stage, runs, cells, which), ""]
+    text = "\n".join(lines) + "\n"
+    target = records / "report.md"
+    atomic_write(target, lambda fh: fh.write(text.encode("utf-8")))
+    return target
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m uavlae.experiments.pilot", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("records", help="the study's runs -> CSV records")
+    r.add_argument("runs", type=Path)
+    r.add_argument("--out", type=Path, default=Path("results/pilot"))
+    rep = sub.add_parser("report", help="CSV records -> report.md")
+    rep.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
+    args = p.parse_args(argv)
+    if args.cmd == "records":
+        print(json.dumps(write_records(args.runs, args.out)))
+    else:
+        print(build(args.records))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
