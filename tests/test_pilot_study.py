@@ -1,0 +1,67 @@
+"""The pilot study's records and report (uavlae/experiments/pilot.py) on hand-made records."""
+
+import csv
+
+import pytest
+
+from uavlae.experiments.advice import EPISODE_COLUMNS
+from uavlae.experiments.pilot import CURVE_SCALARS, EPISODE_KEYS, build, meets
+
+
+def _write(path, rows, fields):
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+
+
+def test_floors():
+    ok = {"DCR": 0.96, "SLR": 0.91, "CR": 0.0, "RVR": 0.0, "ECR": 0.07}
+    assert meets(ok, 0.075) and not meets(ok, 0.06)  # ECR above the greedy heuristic's
+    assert not meets({**ok, "CR": 0.03}, None) and not meets({**ok, "SLR": 0.89}, None)
+    assert not meets({**ok, "RVR": float("nan")}, None)
+
+
+def test_report_from_records_alone(tmp_path):
+    """Two rungs, seeds 100 and 101, two scenarios each (data 1 a scenario, E_total 10).
+    Rung `plain` alone collects scenario 0 only and crashes in scenario 1: DCR 0.5, CR 0.5; its
+    pilot (through the filter) collects both, lands in both and never crashes: DCR 1, SLR 1, CR 0.
+    Rung `ego` alone collects and lands everywhere, and so does its pilot. So the ego actor alone
+    gains ΔDCR +0.5 on plain's: the bootstrap draws the same scenarios for both, and plain's
+    resampled DCR is 0 (both scenarios 1), 0.5 or 1 (both 0): the interval of the difference is
+    [0, 1]. Energy 1 of 10 in every episode: ECR 0.1; the greedy heuristic's is 0.05, so neither
+    pilot meets the ECR floor... except on the curves, where `ego` seed 100 meets every floor at
+    its second evaluation (ECR 0.04), at 200,000 frames and 600 s of training (10 min)."""
+    eps, runs, curves = [], [], []
+    for rung, alone, pilot in (("plain", (1, 0), (1, 1)), ("ego", (1, 1), (1, 1))):
+        for seed in (100, 101):
+            runs.append({"stage": "screen", "rung": rung, "seed": seed, "frames": 1000, "wall_s": 1200.0,
+                         "train_intervention": 0.25, "eval_intervention": 0.125})
+            for ev, got in (("alone", alone), ("pilot", pilot), ("heuristic", (1, 1)), ("random", (0, 0))):
+                for n in (0, 1):
+                    crash = ev == "alone" and got[n] == 0
+                    eps.append({"stage": "screen", "rung": rung, "seed": seed, "evaluation": ev, "set": "selection",
+                                "scenario": n, "data_collected": got[n], "data_total": 1, "collided": crash,
+                                "landed": bool(got[n]), "rz_speeding": False,
+                                "energy_used": 0.5 if ev == "heuristic" else 1.0, "energy_total": 10.0,
+                                "boundary_exit": False, "length": 10})
+            for step, ecr in ((100_000, 0.3), (200_000, 0.04)):
+                curves.append({"stage": "screen", "rung": rung, "seed": seed, "frames": step,
+                               "train_wall_s": 3 * step / 1000, "DCR": 1.0, "SLR": 1.0, "CR": 0.0, "RVR": 0.0,
+                               "ECR": ecr if (rung, seed) == ("ego", 100) else 0.3})
+    _write(tmp_path / "runs.csv", runs, list(runs[0]))
+    _write(tmp_path / "episodes.csv", eps, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    _write(tmp_path / "curves.csv", curves, ["stage", "rung", "seed", "frames", *[c for _, c in CURVE_SCALARS]])
+    text = build(tmp_path).read_text()
+    rows = {tuple(c.strip() for c in line.split("|")[1:4]): line for line in text.splitlines() if line.startswith("| ")}
+    plain_alone = rows[("plain", "100 101", "actor alone")]
+    assert "| 0.500 [0.000, 1.000] | 0.500 [0.000, 1.000] | 0.500 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.100" in plain_alone
+    plain_pilot = rows[("plain", "100 101", "actor + filter")]
+    assert "| 1.000 [1.000, 1.000] | 0.000 [0.000, 0.000] | 1.000 [1.000, 1.000] |" in plain_pilot
+    assert "0.250 / 0.125" in plain_pilot and "| 20 |" in plain_pilot and "not reached (2 runs)" in plain_pilot
+    assert "seed 100: 200,000 frames, 10 min" in rows[("ego", "100 101", "actor + filter")]
+    assert "| ego vs plain | actor alone | 0.500 [0.000, 1.000] |" in text
+    assert "| ego vs plain | actor + filter | 0.000 [0.000, 0.000] |" in text
+    assert "| heuristic | 1.000 [1.000, 1.000] |" in text and "| random | 0.000 [0.000, 0.000] |" in text
+    with pytest.raises(KeyError):
+        rows[("ego", "100 101", "held-out")]
