@@ -12,6 +12,7 @@ from uavlae.envs.config import make_env_config
 from uavlae.envs.gym_adapter import GYM_ID
 from uavlae.envs.world import ObservationLayout, nearest_distances
 from uavlae.policies.d4 import MapInputs
+from uavlae.policies.entity_transformer import EntityTokens
 
 # A 300 x 400 m area, so that the diagonal is 500 m and every expected number is a short decimal;
 # TA and LA moved into its corners. Padded to 3 GEs, 2 OUs and 2 zones of each kind.
@@ -193,6 +194,11 @@ def test_maps_compose_with_the_ego_frame_and_theile_reads_the_same_inputs():
     a, w = MapInputs(ego.layout)(td["observation"]), MapInputs(world.layout)(world.layout.build(s))
     for x, y in zip(a, w):
         assert torch.equal(x, y)
+
+
+def test_entity_tokens_refuse_the_ego_frame():
+    with pytest.raises(ValueError, match="env.obs_frame"):
+        EntityTokens(ObservationLayout(make_env_config({"obs_frame": "ego"})))
 
 
 def test_gym_adapter_in_the_ego_frame():
