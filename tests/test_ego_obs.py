@@ -11,6 +11,7 @@ from uavlae.envs import UAVEnv
 from uavlae.envs.config import make_env_config
 from uavlae.envs.gym_adapter import GYM_ID
 from uavlae.envs.world import ObservationLayout, nearest_distances
+from uavlae.experiments.report import world_label
 from uavlae.policies.d4 import MapInputs
 from uavlae.policies.entity_transformer import EntityTokens
 
@@ -128,6 +129,11 @@ def test_column_counts_at_the_defaults():
 def test_bad_frame_names_the_key():
     with pytest.raises(ValueError, match="obs_frame"):
         make_env_config({"obs_frame": "heading"})
+
+
+def test_reports_name_the_ego_frame_as_a_learning_aid():
+    assert world_label({"obs_frame": "world"}) == world_label({}) == "SPEC world"
+    assert world_label({"obs_frame": "ego", "ego_features": True}) == "learning-aid world: ego features, ego frame"
 
 
 def _permute(s: dict[str, torch.Tensor], keys: tuple[str, ...], perm: torch.Tensor) -> None:
