@@ -273,6 +273,11 @@ class EnvConfig(StrictModel):
     # [decision] beyond SPEC §6, off by default: ego-centric columns (vector to the current
     # target and its direction, vectors to the nearest points of the nearest BZ and NFZ)
     ego_features: bool = False
+    # [decision] beyond SPEC §6, world by default: the frame of the flat observation. "world" is
+    # the paper's (absolute positions); "ego" gives every GE, zone, LA and the boundary relative to
+    # the DCU (translated, axes still east/north: a heading is undefined while hovering, and the
+    # action is a world-frame velocity), entities sorted by distance (ObservationLayout)
+    obs_frame: Literal["world", "ego"] = "world"
     maps: MapsConfig = MapsConfig()
 
     @model_validator(mode="after")

@@ -88,6 +88,7 @@ def state_table_markdown() -> str:
     return "\n".join(lines)
 
 
+ZONE_KINDS = ("nfz", "rz", "bz")  # the order of the zones in the observation, both frames
 EVENT_KEYS = (
     "bz_collision", "nfz_entry", "ou_collision", "boundary_exit", "rz_speeding", "landed",
     "energy_exhausted",
@@ -129,7 +130,7 @@ def current_target(state: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     d_ge = torch.linalg.vector_norm(rel_ge, dim=-1).masked_fill(~has, float("inf"))
     if d_ge.shape[-1] > 0:
         near = d_ge.argmin(-1, keepdim=True)
-        rel_near = torch.gather(rel_ge, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+        rel_near = torch.gather(rel_ge, -2, near.unsqueeze(-1).expand(*near.shape, 2)).squeeze(-2)
     else:
         rel_near = torch.zeros_like(p)
     rel_la = ph.nearest_point_in_rects(p, state["landing"].unsqueeze(-2)).squeeze(-2) - p
@@ -152,16 +153,50 @@ def progress_potential(state: dict[str, Tensor], cfg: EnvConfig) -> Tensor:
     return -(d + d_tar * n_left.to(d.dtype)) / d_tar
 
 
+def rect_vectors(p: Tensor, rects: Tensor) -> Tensor:
+    """Vector from ``p`` ``[..., 2]`` to the nearest point of each rectangle ``[..., R, 4]``:
+    ``[..., R, 2]``, 0 inside."""
+    return ph.nearest_point_in_rects(p, rects) - p.unsqueeze(-2)
+
+
 def nearest_rect_vector(p: Tensor, rects: Tensor, mask: Tensor) -> Tensor:
     """Vector from ``p`` to the nearest point of the nearest present rectangle (0 inside; 0
     when none is present)."""
     if rects.shape[-2] == 0:
         return torch.zeros_like(p)
-    vec = ph.nearest_point_in_rects(p, rects) - p.unsqueeze(-2)
+    vec = rect_vectors(p, rects)
     d = torch.linalg.vector_norm(vec, dim=-1).masked_fill(~mask, float("inf"))
     near = d.argmin(-1, keepdim=True)
-    out = torch.gather(vec, -2, near.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+    out = torch.gather(vec, -2, near.unsqueeze(-1).expand(*near.shape, 2)).squeeze(-2)
     return out * mask.any(-1, keepdim=True).to(p.dtype)
+
+
+def saturate(vec: Tensor, scale: float) -> Tensor:
+    """``vec`` ``[..., 2]`` with its length capped at ``scale``, its direction kept."""
+    n = torch.linalg.vector_norm(vec, dim=-1, keepdim=True)
+    return vec * (scale / n.clamp_min(scale))
+
+
+def unit_vector(vec: Tensor, length: Tensor) -> Tensor:
+    """``vec / length`` (``length`` its norm, ``[...]``); 0 for a zero vector, not NaN."""
+    return vec / length.clamp_min(1e-6).unsqueeze(-1)
+
+
+def sort_order(*keys: Tensor) -> Tensor:
+    """Indices that sort the last dimension by ``keys[0]``, its ties by ``keys[1]``, and so on.
+
+    Stable sorts from the least significant key up compose to the lexicographic order."""
+    order = torch.argsort(keys[-1], dim=-1, stable=True)
+    for key in reversed(keys[:-1]):
+        order = torch.gather(order, -1, torch.argsort(torch.gather(key, -1, order), dim=-1, stable=True))
+    return order
+
+
+def take(x: Tensor, order: Tensor) -> Tensor:
+    """``x`` ``[..., N]`` or ``[..., N, C]`` with its entities (dimension N) in ``order`` ``[..., N]``."""
+    if x.dim() == order.dim():
+        return torch.gather(x, -1, order)
+    return torch.gather(x, -2, order.unsqueeze(-1).expand(*order.shape, x.shape[-1]))
 
 
 def initial_state(scen: dict[str, Tensor], cfg: EnvConfig) -> dict[str, Tensor]:
@@ -298,7 +333,38 @@ def world_step_core(
 
 
 class ObservationLayout:
-    """Normalisation constants and sizes of the flat observation (SPEC §6).
+    """Normalisation constants and sizes of the flat observation (SPEC §6), in one of two frames
+    (``env.obs_frame``).
+
+    ``world`` (the default) is the paper's o_t: absolute GE positions, zone rectangles by their
+    absolute corner and sides, the DCU's own position, TA and LA, every entity at its index.
+
+    ``ego`` [decision] holds the same information relative to the DCU, translated only (the axes
+    stay east and north: a heading-rotated frame is undefined while the DCU hovers, and the action
+    is a world-frame velocity), each kind of entity sorted so that no column depends on an
+    entity's index:
+
+    - every GE: its vector from the DCU / diagonal, data left / ``ge.data_max``, a has-data flag
+      and a presence flag; those with data left first, then the emptied ones, each nearest first,
+      the absent ones last as zeros;
+    - every NFZ, RZ and BZ: its rectangle relative to the DCU, (x0-px, y0-py, x1-px, y1-py) /
+      area side, the vector to its nearest point (0 inside) saturated at ``obs_distance_scale``
+      and divided by it, an inside flag and a presence flag; per kind nearest first (ties, as
+      inside overlapping RZs, by the distance to the centre), the absent ones last as zeros;
+    - the boundary: the distances to the west, east, south and north edges / area side; LA: its
+      rectangle relative to the DCU / area side, the vector to its nearest point / diagonal, an
+      in-LA flag;
+    - the OUs within the perception radius as in ``world`` (they are relative there already);
+    - energy left / E_limit, velocity / v_max, the last slot's data / ``ge.data_max``, the slots
+      left (1 - step / t_max);
+    - the current target (``current_target``: the nearest GE with data, else LA's nearest point)
+      as its unit direction and its distance / diagonal.
+
+    ``extra_features`` and ``ego_features`` append their columns after either frame's. In the
+    ``ego`` frame the extra columns are mostly redundant (the zone vectors hold the distances, the
+    LA vector the distance to LA) and the ego columns repeat the target and the nearest BZ and NFZ
+    vectors, except with ``reward.progress_metric: geodesic``, where the target column reads a
+    planner's distance field: a training-only aid either way.
 
     With ``env.maps.enabled`` the observation is the flat one (``flat_size`` columns) followed by
     the local and the global map of :func:`uavlae.envs.maps.dcu_maps`, each flattened in its
@@ -306,12 +372,20 @@ class ObservationLayout:
 
     def __init__(self, cfg: EnvConfig):
         self.cfg = cfg
+        self.frame = cfg.obs_frame
         self.n_ge = cfg.ge.count.padded
         self.n_ou = cfg.ou.count.padded
         self.n_zone = (cfg.zones.n_nfz.padded, cfg.zones.n_rz.padded, cfg.zones.n_bz.padded)
         self.extra = cfg.extra_features
         self.ego = cfg.ego_features
-        self._divisor = self._column_divisors()
+        # the kind (index into ZONE_KINDS) of each zone of the three kinds concatenated
+        self._zone_kind = torch.repeat_interleave(torch.arange(3), torch.tensor(self.n_zone))
+        spec = self._column_spec()
+        self._columns, i = {}, 0
+        for name, divisors in spec:
+            self._columns[name] = slice(i, i + len(divisors))
+            i += len(divisors)
+        self._divisor = self._column_divisors(spec)
         self.flat_size = self._divisor.numel()
         m = cfg.maps
         c = len(MAP_CHANNELS)
@@ -319,58 +393,93 @@ class ObservationLayout:
         self.size = self.flat_size + sum(a * b * d for a, b, d in self.map_shapes)
 
     def columns(self) -> dict[str, slice]:
-        """Where the parts of the flat observation lie: ``{name: slice of columns}`` (``extra`` and
-        ``ego`` only when on), in :meth:`build`'s order."""
-        g, k = self.n_ge, self.n_ou
-        widths = [("ge_pos", 2 * g), ("ge_data", g), ("ge_tp", g), ("ge_present", g)]
-        for name, n in zip(("nfz", "rz", "bz"), self.n_zone):
-            widths += [(name, 4 * n), (f"{name}_present", n)]
-        widths += [("ou_rel", 2 * k), ("ou_vel", 2 * k), ("ou_seen", k), ("position", 2), ("velocity", 2),
-                   ("energy_left", 1), ("slot_data", 1), ("takeoff", 4), ("landing", 4)]
-        if self.extra:
-            widths.append(("extra", 6))
-        if self.ego:
-            widths += [("target", 2), ("target_dir", 2), ("bz_vec", 2), ("nfz_vec", 2)]
-        out, i = {}, 0
-        for name, w in widths:
-            out[name] = slice(i, i + w)
-            i += w
-        assert i == self.flat_size, (i, self.flat_size)
-        return out
+        """Where the parts of the flat observation lie: ``{name: slice of columns}`` in
+        :meth:`build`'s order; the names are the frame's (``_world_spec``, ``_ego_frame_spec``),
+        then ``extra`` and the ``ego_features`` columns when on."""
+        return dict(self._columns)
 
-    def _column_divisors(self) -> Tensor:
-        """The normalising divisor of every observation column (1 for flags and counts), in the
-        order ``build`` lays out the raw columns: one division of the whole row at the end
-        gives exactly the per-part divisions, at a fraction of the cost."""
+    def _column_spec(self) -> list[tuple[str, list[float]]]:
+        """Every part of the flat observation in :meth:`build`'s order: its name and the
+        normalising divisor of each of its columns (1 for flags and counts)."""
         cfg = self.cfg
-        a, m = cfg.area, cfg.motion
-        xy, xyxy = [a.x_size, a.y_size], [a.x_size, a.y_size, a.x_size, a.y_size]
-        g, k, pr = self.n_ge, self.n_ou, cfg.safety.perception_radius
-        cols = xy * g + [cfg.ge.data_max] * g + [1.0] * (2 * g)
-        for n in self.n_zone:
-            cols += xyxy * n + [1.0] * n
-        cols += [pr] * (2 * k) + [m.v_max] * (2 * k) + [1.0] * k
-        cols += xy + [m.v_max] * 2 + [cfg.energy.e_limit, cfg.ge.data_max] + xyxy + xyxy
+        a, scale = cfg.area, cfg.obs_distance_scale
+        spec = self._world_spec() if self.frame == "world" else self._ego_frame_spec()
         if self.extra:
-            cols += [cfg.obs_distance_scale] * 4 + [a.diagonal, 1.0]
+            spec.append(("extra", [scale] * 4 + [a.diagonal, 1.0]))
         if self.ego:
             # target vector / diagonal, its unit direction, nearest BZ and NFZ point vectors
             # (saturated at obs_distance_scale, divided by it)
-            cols += [a.diagonal] * 2 + [1.0] * 2 + [cfg.obs_distance_scale] * 4
-        return torch.tensor(cols, dtype=torch.float64)
+            spec += [("target", [a.diagonal] * 2), ("target_dir", [1.0] * 2), ("bz_vec", [scale] * 2),
+                     ("nfz_vec", [scale] * 2)]
+        return spec
+
+    def _ou_spec(self) -> list[tuple[str, list[float]]]:
+        # the same in both frames: the OUs are relative to the DCU in the paper's o_t already
+        k, pr = self.n_ou, self.cfg.safety.perception_radius
+        return [("ou_rel", [pr] * (2 * k)), ("ou_vel", [self.cfg.motion.v_max] * (2 * k)), ("ou_seen", [1.0] * k)]
+
+    def _world_spec(self) -> list[tuple[str, list[float]]]:
+        cfg = self.cfg
+        a, m, g = cfg.area, cfg.motion, self.n_ge
+        xy, xyxy = [a.x_size, a.y_size], [a.x_size, a.y_size, a.x_size, a.y_size]
+        spec = [("ge_pos", xy * g), ("ge_data", [cfg.ge.data_max] * g), ("ge_tp", [1.0] * g), ("ge_present", [1.0] * g)]
+        for name, n in zip(ZONE_KINDS, self.n_zone):
+            spec += [(name, xyxy * n), (f"{name}_present", [1.0] * n)]
+        return spec + self._ou_spec() + [
+            ("position", xy), ("velocity", [m.v_max] * 2), ("energy_left", [cfg.energy.e_limit]),
+            ("slot_data", [cfg.ge.data_max]), ("takeoff", xyxy), ("landing", xyxy),
+        ]
+
+    def _ego_frame_spec(self) -> list[tuple[str, list[float]]]:
+        cfg = self.cfg
+        a, g, d, scale = cfg.area, self.n_ge, cfg.area.diagonal, cfg.obs_distance_scale
+        xyxy = [a.x_size, a.y_size, a.x_size, a.y_size]
+        spec = [("ge_rel", [d] * (2 * g)), ("ge_data", [cfg.ge.data_max] * g), ("ge_has_data", [1.0] * g),
+                ("ge_present", [1.0] * g)]
+        for name, n in zip(ZONE_KINDS, self.n_zone):
+            spec += [(f"{name}_rel", xyxy * n), (f"{name}_near", [scale] * (2 * n)), (f"{name}_inside", [1.0] * n),
+                     (f"{name}_present", [1.0] * n)]
+        spec += [("boundary", [a.x_size, a.x_size, a.y_size, a.y_size]), ("landing_rel", xyxy),
+                 ("landing_near", [d] * 2), ("in_landing", [1.0])]
+        return spec + self._ou_spec() + [
+            ("energy_left", [cfg.energy.e_limit]), ("velocity", [cfg.motion.v_max] * 2),
+            ("slot_data", [cfg.ge.data_max]), ("slots_left", [float(cfg.t_max)]),
+            ("goal_dir", [1.0] * 2), ("goal_dist", [d]),
+        ]
+
+    @staticmethod
+    def _column_divisors(spec: list[tuple[str, list[float]]]) -> Tensor:
+        """The normalising divisor of every observation column, in the order ``build`` lays out
+        the raw columns: one division of the whole row at the end gives exactly the per-part
+        divisions, at a fraction of the cost."""
+        return torch.tensor([x for _, divisors in spec for x in divisors], dtype=torch.float64)
 
     def build(self, s: dict[str, Tensor]) -> Tensor:
         """The normalised observation ``[B, size]`` of the raw state ``s`` (SPEC §6), the maps last."""
         p = s["position"]
-        parts = self._base_parts(s) + self._extra_parts(s) + self._ego_parts(s)
+        frame = self._base_parts(s) if self.frame == "world" else self._ego_frame_parts(s)
+        parts = frame + self._extra_parts(s) + self._ego_parts(s)
         flat = torch.cat(parts, dim=-1) / self._divisor.to(device=p.device, dtype=p.dtype)
         if not self.map_shapes:
             return flat
         return torch.cat([flat, *(m.flatten(1) for m in dcu_maps(s, self.cfg))], dim=-1)
 
+    def _ou_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
+        """The OUs inside the perception radius, nearest first: relative position, velocity, flag
+        (``[..., 2K]``, ``[..., 2K]``, ``[..., K]``)."""
+        p = s["position"]
+        rel = s["ou_pos"] - p.unsqueeze(-2)
+        dist = torch.linalg.vector_norm(rel, dim=-1)
+        visible = s["ou_mask"] & (dist <= self.cfg.safety.perception_radius)
+        order = torch.argsort(dist.masked_fill(~visible, float("inf")), dim=-1, stable=True)
+        vis = torch.gather(visible, -1, order).to(p.dtype)
+        # (x / scale) * vis == (x * vis) / scale exactly: vis is 0 or 1
+        rel = take(rel, order) * vis.unsqueeze(-1)
+        vel = take(s["ou_vel"], order) * vis.unsqueeze(-1)
+        return [rel.flatten(-2), vel.flatten(-2), vis]
+
     def _base_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
-        """The raw (unnormalised) base columns, ``[B, n]`` each: GEs, zones, OUs, the DCU."""
-        cfg = self.cfg
+        """The raw (unnormalised) columns of the world frame, ``[B, n]`` each: GEs, zones, OUs, the DCU."""
         p = s["position"]
         b = p.shape[0]
         parts = []
@@ -383,20 +492,10 @@ class ObservationLayout:
             ge_mask,
         ]
         # Zones: south-west corner, length, width, presence
-        for name in ("nfz", "rz", "bz"):
+        for name in ZONE_KINDS:
             r = s[name]
             parts += [torch.cat([r[..., :2], r[..., 2:] - r[..., :2]], dim=-1).flatten(1), s[name + "_mask"].to(p.dtype)]
-        # OUs inside the perception radius, nearest first: relative position, velocity, flag
-        rel = s["ou_pos"] - p.unsqueeze(-2)
-        dist = torch.linalg.vector_norm(rel, dim=-1)
-        visible = s["ou_mask"] & (dist <= cfg.safety.perception_radius)
-        order = torch.argsort(dist.masked_fill(~visible, float("inf")), dim=-1, stable=True)
-        vis = torch.gather(visible, -1, order).to(p.dtype)
-        idx2 = order.unsqueeze(-1).expand(-1, -1, 2)
-        # (x / scale) * vis == (x * vis) / scale exactly: vis is 0 or 1
-        rel = torch.gather(rel, -2, idx2) * vis.unsqueeze(-1)
-        vel = torch.gather(s["ou_vel"], -2, idx2) * vis.unsqueeze(-1)
-        parts += [rel.flatten(1), vel.flatten(1), vis]
+        parts += self._ou_parts(s)
         # DCU: position, velocity, energy left, data of the last slot, TA, LA
         parts += [
             p,
@@ -407,6 +506,54 @@ class ObservationLayout:
             s["landing"],
         ]
         return [t.reshape(b, -1) for t in parts]
+
+    def _ego_frame_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
+        """The raw columns of the ego frame, ``[..., n]`` each (class docstring), in
+        ``_ego_frame_spec``'s order."""
+        cfg = self.cfg
+        a, scale = cfg.area, cfg.obs_distance_scale
+        p = s["position"]
+        dt = p.dtype
+        pp = torch.cat([p, p], dim=-1).unsqueeze(-2)  # subtracted from (x0, y0, x1, y1)
+        # GEs: data left first, then emptied, each nearest first; absent last, zeroed
+        present = s["ge_mask"]
+        has = (s["ge_remaining"] > 0) & present
+        rel = s["ge_pos"] - p.unsqueeze(-2)
+        group = (~has).to(torch.int64) + (~present).to(torch.int64)  # 0 data left, 1 emptied, 2 absent
+        order = sort_order(group, torch.linalg.vector_norm(rel, dim=-1))
+        keep = take(present, order).to(dt)
+        parts = [(take(rel, order) * keep.unsqueeze(-1)).flatten(-2), take(s["ge_remaining"], order) * keep,
+                 take(has, order).to(dt), keep]
+        # zones: per kind nearest first (ties by the distance to the centre), absent last, zeroed;
+        # the three kinds sorted at once with the kind as the first key, a third of the ops
+        r = torch.cat([s[name] for name in ZONE_KINDS], dim=-2)
+        mask = torch.cat([s[name + "_mask"] for name in ZONE_KINDS], dim=-1)
+        vec = rect_vectors(p, r)
+        dist = torch.linalg.vector_norm(vec, dim=-1).masked_fill(~mask, float("inf"))
+        centre = torch.linalg.vector_norm((r[..., :2] + r[..., 2:]) / 2 - p.unsqueeze(-2), dim=-1)
+        order = sort_order(self._zone_kind.to(p.device).expand_as(dist), dist, centre)
+        keep = take(mask, order).to(dt)
+        rel = take(r - pp, order) * keep.unsqueeze(-1)
+        near = take(saturate(vec, scale), order) * keep.unsqueeze(-1)
+        inside = take(ph.point_in_rects(p, r, mask), order).to(dt)
+        i = 0
+        for n in self.n_zone:
+            parts += [rel[..., i : i + n, :].flatten(-2), near[..., i : i + n, :].flatten(-2), inside[..., i : i + n],
+                      keep[..., i : i + n]]
+            i += n
+        # the boundary (west, east, south, north) and LA
+        x, y = p[..., 0:1], p[..., 1:2]
+        la = s["landing"].unsqueeze(-2)
+        in_la = ph.point_in_rects(p, la, torch.ones(la.shape[:-1], dtype=torch.bool, device=p.device))
+        parts += [torch.cat([x, a.x_size - x, y, a.y_size - y], dim=-1), (la - pp).squeeze(-2),
+                  rect_vectors(p, la).squeeze(-2), in_la.to(dt)]
+        parts += self._ou_parts(s)
+        # the DCU: energy left, velocity, last slot's data, slots left (t_max - step, / t_max)
+        parts += [s["energy_left"].unsqueeze(-1), s["velocity"], s["slot_data"].unsqueeze(-1),
+                  (cfg.t_max - s["step"]).to(dt).unsqueeze(-1)]
+        # the current target: unit direction, distance
+        rel, d, _ = current_target(s)
+        return parts + [unit_vector(rel, d), d.unsqueeze(-1)]
 
     def _extra_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
         """The raw extra columns (none when off): distances to the nearest zones, the boundary and
@@ -421,7 +568,7 @@ class ObservationLayout:
         ]
 
     def _ego_parts(self, s: dict[str, Tensor]) -> list[Tensor]:
-        """The raw ego-centric columns (none when off), ``[B, 2]`` each."""
+        """The raw ``ego_features`` columns (none when off), ``[B, 2]`` each."""
         cfg = self.cfg
         p = s["position"]
         parts = []
@@ -431,11 +578,9 @@ class ObservationLayout:
                 rel = unit * d.clamp_max(cfg.reward.d_tar).unsqueeze(-1)
             else:
                 rel, d, _ = current_target(s)
-                unit = rel / d.clamp_min(1e-6).unsqueeze(-1)
-            scale = cfg.obs_distance_scale
+                unit = unit_vector(rel, d)
             parts += [rel, unit]
             for name in ("bz", "nfz"):
-                vec = nearest_rect_vector(p, s[name], s[name + "_mask"])
-                n = torch.linalg.vector_norm(vec, dim=-1, keepdim=True)
-                parts.append(vec * (scale / n.clamp_min(scale)))  # length saturates at scale
+                # length saturates at obs_distance_scale
+                parts.append(saturate(nearest_rect_vector(p, s[name], s[name + "_mask"]), cfg.obs_distance_scale))
         return parts

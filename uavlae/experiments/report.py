@@ -172,6 +172,8 @@ def world_label(env: dict[str, Any]) -> str:
         aids.append(f"progress reward ({reward.get('progress_metric', 'euclidean')})")
     if env.get("ego_features"):
         aids.append("ego features")
+    if env.get("obs_frame", "world") == "ego":
+        aids.append("ego frame")
     return "SPEC world" if not aids else "learning-aid world: " + ", ".join(aids)
 
 

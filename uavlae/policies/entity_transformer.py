@@ -47,6 +47,13 @@ class EntityTokens(nn.Module):
 
     def __init__(self, layout: ObservationLayout):
         super().__init__()
+        if layout.frame != "world":
+            # the tokens are cut at the world frame's column positions (absolute positions, the
+            # DCU's own position to subtract); the ego frame lays its columns out otherwise
+            raise ValueError(
+                f"the entity tokens read the world-frame observation: set env.obs_frame=world "
+                f"(got env.obs_frame={layout.frame})"
+            )
         self.n_ge, self.n_ou = layout.n_ge, layout.n_ou
         self.n_zone = tuple(layout.n_zone)
         g, k = self.n_ge, self.n_ou
