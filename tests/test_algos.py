@@ -23,6 +23,7 @@ from uavlae.algos.ppo_lagrangian import (
     make_ppo_lagrangian,
 )
 from uavlae.algos.sac import SACConfig, make_sac, make_sac_config
+from uavlae.algos.sac_lag import make_sac_lag
 from uavlae.factories import CONF_DIR
 from uavlae.envs import UAVEnv
 from uavlae.policies.networks import action_bounds, make_sac_actor
@@ -459,13 +460,15 @@ def _assert_same(a, b, path="state"):
 def _learners(obs_dim, spec):
     return {
         "sac": lambda: make_sac({}, obs_dim, spec),
+        # a multiplier above 0 and a measurement window left open at the checkpoint
+        "sac_lag": lambda: make_sac_lag({"lagrange_every": 2, "lagrange": {"init": 0.5}}, obs_dim, spec),
         "ddpg": lambda: make_ddpg({}, obs_dim, spec),
         "ppo": lambda: make_ppo({"epochs": 1, "minibatch_size": 64}, obs_dim, spec),
         "cpo": lambda: make_ppo_lagrangian({"epochs": 1, "minibatch_size": 64, "lagrange": {"method": "pid"}}, obs_dim, spec),
     }
 
 
-@pytest.mark.parametrize("name", ["sac", "ddpg", "ppo", "cpo"])
+@pytest.mark.parametrize("name", ["sac", "sac_lag", "ddpg", "ppo", "cpo"])
 def test_state_dict_round_trip(name, env, obs_dim, replay_batch):
     make = _learners(obs_dim, env.action_spec)[name]
     torch.manual_seed(0)

@@ -480,11 +480,28 @@ def test_cost_weighted_sum():
         "ou_collision": torch.tensor([False, True, False, True]),
         "bz_collision": torch.tensor([False, False, False, True]),
         "nfz_entry": torch.tensor([False, True, False, True]),
-        "rz_speeding": torch.tensor([True, True, True, True]),  # not a cost event
+        "rz_speeding": torch.tensor([True, True, True, True]),  # weight 0 by default: not in the paper's cost
     }
     # 1; 2 + 4 = 6; 0; 1 + 2 + 3 + 4 = 10
     assert torch.equal(ph.cost(ev, c), torch.tensor([1.0, 6.0, 0.0, 10.0]))
     assert torch.equal(ph.cost(ev, CostConfig()), torch.tensor([1.0, 2.0, 0.0, 4.0]))
+
+
+def test_cost_counts_rz_speeding_only_with_a_weight():
+    ev = {
+        "boundary_exit": torch.tensor([True, False, False]),
+        "ou_collision": torch.tensor([False, False, True]),
+        "bz_collision": torch.tensor([False, False, False]),
+        "nfz_entry": torch.tensor([False, False, False]),
+        "rz_speeding": torch.tensor([True, True, False]),
+    }
+    assert CostConfig().rz_speeding == 0.0
+    # the paper's cost: 1; 0; 1 (speeding ignored)
+    assert torch.equal(ph.cost(ev, CostConfig()), torch.tensor([1.0, 0.0, 1.0]))
+    # weight 0.5: 1 + 0.5 = 1.5; 0.5; 1
+    assert torch.equal(ph.cost(ev, CostConfig(rz_speeding=0.5)), torch.tensor([1.5, 0.5, 1.0]))
+    with pytest.raises(ValueError, match="rz_speeding"):
+        make_env_config({"cost": {"rz_speeding": -1.0}})
 
 
 # ----------------------------------------------------------------------------- batch shapes

@@ -243,9 +243,10 @@ RESUME = [
 ]
 
 
-@pytest.mark.parametrize("exp", ["sac", "sac_heuristic"])
+@pytest.mark.parametrize("exp", ["sac", "sac_heuristic", "sac_lag"])
 def test_resume_after_sigkill_equals_uninterrupted_run(tmp_path, exp):
-    # sac_heuristic: the heuristic advisor's plan cache shapes its actions, so it is checkpointed
+    # sac_heuristic: the heuristic advisor's plan cache shapes its actions, so it is checkpointed;
+    # sac_lag: the cost critic, its target, the multiplier and its open measurement window
     from uavlae.train import run
 
     run_dir = tmp_path / "killed"

@@ -218,7 +218,7 @@ def validate_config(cfg: DictConfig) -> None:
     make_safety_filter_config(cfg.get("safety_filter"))
     if run.controller == "learner":
         if cfg.get("algo") is None:
-            raise ValueError("controller=learner needs an algo (algo=sac|ppo|ddpg|cpo|wang|theile)")
+            raise ValueError("controller=learner needs an algo (algo=sac|sac_lag|ppo|ddpg|cpo|wang|theile)")
         from uavlae.algos import MAKERS
 
         name = cfg.algo.name
@@ -248,11 +248,12 @@ def _algo_config(cfg: Any) -> Any:
     from uavlae.algos.ppo import make_ppo_config
     from uavlae.algos.ppo_lagrangian import make_cpo_config
     from uavlae.algos.sac import make_sac_config
+    from uavlae.algos.sac_lag import make_sac_lag_config
     from uavlae.algos.theile import make_theile_config
     from uavlae.algos.wang import make_wang_config
 
     makers = {
-        "sac": make_sac_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config,
+        "sac": make_sac_config, "sac_lag": make_sac_lag_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config,
         "wang": make_wang_config, "theile": make_theile_config,
     }
     return makers[cfg.name](cfg)

@@ -3,7 +3,7 @@
 Every learner follows :class:`Learner`: ``actor`` (evaluated and deployed, deterministically),
 ``behaviour`` (what acts while collecting), ``off_policy``, ``anneal(frames)`` (the schedules
 that follow training progress), ``update(batch) -> dict[str, float]``, ``state_dict()`` /
-``load_state_dict()``. Off-policy (sac, ddpg): ``batch`` is a replay sample ``[N]``; on-policy
+``load_state_dict()``. Off-policy (sac, sac_lag, ddpg): ``batch`` is a replay sample ``[N]``; on-policy
 (ppo, cpo, wang, theile): a collector batch ``[*B, T]``, time last.
 """
 
@@ -18,14 +18,15 @@ from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
 from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
 from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
 from uavlae.algos.sac import SAC, SACConfig, make_sac
+from uavlae.algos.sac_lag import SACLag, SACLagConfig, make_sac_lag
 from uavlae.algos.theile import Theile, TheileConfig, make_theile
 from uavlae.algos.wang import Wang, WangConfig, make_wang
 
-MAKERS = {"sac": make_sac, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian, "wang": make_wang,
-          "theile": make_theile}
+MAKERS = {"sac": make_sac, "sac_lag": make_sac_lag, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian,
+          "wang": make_wang, "theile": make_theile}
 # cut the observation into entities (wang) or find its maps (theile): need the env's ObservationLayout
 NEEDS_LAYOUT = frozenset({"wang", "theile"})
-OFF_POLICY = frozenset({"sac", "ddpg"})
+OFF_POLICY = frozenset({"sac", "sac_lag", "ddpg"})
 
 
 class Learner(Protocol):
@@ -72,6 +73,8 @@ __all__ = [
     "PPOLagrangian",
     "SAC",
     "SACConfig",
+    "SACLag",
+    "SACLagConfig",
     "Theile",
     "TheileConfig",
     "Wang",

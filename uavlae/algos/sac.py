@@ -127,6 +127,10 @@ class SAC:
     num_updates: int = 0
     clone_now: float = 0.0  # the cloning weight at the current frame (anneal), before clone_scale
     off_policy: ClassVar[bool] = True
+    # What _losses returns that the torchrl path sums into one backward, and what a step logs; a
+    # learner built on SAC's losses adds its own terms to both.
+    _loss_keys: ClassVar[tuple[str, ...]] = ("loss_actor", "loss_qvalue", "loss_alpha", "loss_clone")
+    _log_keys: ClassVar[tuple[str, ...]] = _LOG_KEYS
     _loss_fn: Any = field(default=None, repr=False)
     _in_keys: list = field(default_factory=list, repr=False)
     _sources: list = field(default_factory=list, repr=False)
@@ -181,22 +185,26 @@ class SAC:
                 p.grad = g
             norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
         else:
-            out = self._loss_fn(batch.select(*self._in_keys))
-            total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-            loss_clone = torch.zeros(())
-            if mask is not None:
-                w = self.clone_now * (max(abs(float(out["loss_actor"].detach())), 1.0) if relative else 1.0)
-                loss_clone = clone_loss(self.actor, batch.get("observation"), batch.get("action"), mask, w)
-                total = total + loss_clone
-            out = {**out, "loss_clone": loss_clone}
+            out = self._losses(batch, mask, relative)
+            total = sum(out[k] for k in self._loss_keys)
             norms = optimiser_step(self.optimisers, total, self.cfg.max_grad_norm)
         with torch.no_grad():
             # SoftUpdate: target <- target + tau (source - target)
             for target, source in zip(self._targets, self._sources):
                 target.lerp_(source, self._tau)
-        logs = {k: out[k].detach() for k in _LOG_KEYS}
+        logs = {k: out[k].detach() for k in self._log_keys}
         logs.update((k, v.detach()) for k, v in norms.items())
         return logs
+
+    def _losses(self, batch: TensorDictBase, mask: torch.Tensor | None, relative: bool) -> dict[str, torch.Tensor]:
+        """SACLoss's losses through autograd (``loss_impl: torchrl``) and the cloning term."""
+        out = dict(self._loss_fn(batch.select(*self._in_keys)).items())
+        loss_clone = torch.zeros(())
+        if mask is not None:
+            w = self.clone_now * (max(abs(float(out["loss_actor"].detach())), 1.0) if relative else 1.0)
+            loss_clone = clone_loss(self.actor, batch.get("observation"), batch.get("action"), mask, w)
+        out["loss_clone"] = loss_clone
+        return out
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on ``batch`` (see the module doc for its keys); returns log scalars."""

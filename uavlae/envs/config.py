@@ -221,6 +221,9 @@ class CostConfig(StrictModel):
     ou_collision: float = Field(1.0, ge=0)
     bz_collision: float = Field(1.0, ge=0)
     nfz_entry: float = Field(1.0, ge=0)
+    # Beyond the paper, whose cost leaves the speed limit to r5: 0 keeps the paper's cost; a
+    # positive weight makes RZ speeding a constraint for the constrained learners too.
+    rz_speeding: float = Field(0.0, ge=0)
 
 
 class SamplingConfig(StrictModel):

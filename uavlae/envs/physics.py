@@ -45,7 +45,8 @@ __all__ = [
     "COST_EVENTS",
 ]
 
-COST_EVENTS = ("boundary_exit", "ou_collision", "bz_collision", "nfz_entry")
+# The paper's four, then RZ speeding, whose weight is 0 by default (SPEC §7)
+COST_EVENTS = ("boundary_exit", "ou_collision", "bz_collision", "nfz_entry", "rz_speeding")
 
 
 # ----------------------------------------------------------------------------- shaping
@@ -383,6 +384,7 @@ def reward_terms(
 
 def cost(events: dict[str, Tensor], c: CostConfig) -> Tensor:
     # SPEC §7 CPO cost: c_t = Σ_k w_k · 1[event_k], k in boundary exit, OU collision, BZ collision, NFZ entry
+    # (and RZ speeding, at weight 0 unless configured: adding 0 leaves the paper's sum bit for bit)
     total = None
     for name in COST_EVENTS:
         term = getattr(c, name) * events[name].to(torch.get_default_dtype())
