@@ -53,12 +53,16 @@ def _activation(name: str) -> type[nn.Module]:
         raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {name!r}") from None
 
 
-def _mlp(in_features: int, out_features: int, hidden: Sequence[int], activation: str) -> MLP:
+def _mlp(in_features: int, out_features: int, hidden: Sequence[int], activation: str, layer_norm: bool = False) -> MLP:
+    """Linear layers of ``hidden`` widths; ``layer_norm``: a LayerNorm after each hidden linear
+    layer, before its activation (torchrl's MLP places ``norm_class`` there)."""
+    norm = {"norm_class": nn.LayerNorm, "norm_kwargs": [{"normalized_shape": h} for h in hidden]} if layer_norm else {}
     return MLP(
         in_features=in_features,
         out_features=out_features,
         num_cells=list(hidden),
         activation_class=_activation(activation),
+        **norm,
     )
 
 
@@ -87,12 +91,17 @@ SCALE_LB = 1e-4
 
 
 def _tanh_normal_actor(
-    obs_dim: int, action_spec: TensorSpec, hidden: Sequence[int], activation: str, return_log_prob: bool
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int],
+    activation: str,
+    return_log_prob: bool,
+    layer_norm: bool = False,
 ) -> ProbabilisticActor:
     box = action_bounds(action_spec)
     act_dim = box.shape[-1]
     extractor = NormalParamExtractor(scale_mapping=f"biased_softplus_{SCALE_AT_ZERO}_{SCALE_MIN}", scale_lb=SCALE_LB)
-    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation), extractor)
+    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation, layer_norm), extractor)
     params = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         params,
@@ -109,13 +118,16 @@ def make_sac_actor(
     action_spec: TensorSpec,
     hidden: Sequence[int] = (64, 64),
     activation: Activation = "relu",
+    layer_norm: bool = False,
 ) -> ProbabilisticActor:
     """Tanh-Gaussian actor for SAC: ``"observation"`` -> ``"loc"``, ``"scale"``, ``"action"``.
 
     SACLoss draws its own reparameterised samples from ``get_dist``; no log-prob is written.
     Under ``ExplorationType.DETERMINISTIC`` the action is the tanh of the mean (evaluation).
+    ``layer_norm``: a LayerNorm after each hidden linear layer (it normalises each row alone, so
+    acting on one row and learning on a batch see the same network).
     """
-    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=False)
+    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=False, layer_norm=layer_norm)
 
 
 def make_ppo_actor(
@@ -133,10 +145,12 @@ def make_q_critic(
     act_dim: int,
     hidden: Sequence[int] = (64, 64),
     activation: Activation = "relu",
+    layer_norm: bool = False,
 ) -> ValueOperator:
-    """Q(s, a): ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``."""
+    """Q(s, a): ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``;
+    ``layer_norm`` as :func:`make_sac_actor`."""
     return ValueOperator(
-        _mlp(obs_dim + act_dim, 1, hidden, activation),
+        _mlp(obs_dim + act_dim, 1, hidden, activation, layer_norm),
         in_keys=["observation", "action"],
         out_keys=["state_action_value"],
     )
