@@ -3,7 +3,7 @@
 The loop (:func:`train`), top to bottom, in the shape of TorchRL's ``sota-implementations``::
 
     while the frame budget is not spent:
-        off-policy (sac, ddpg), one env step at a time for a batch of T steps:
+        off-policy (sac, ddpg, crossq), one env step at a time for a batch of T steps:
             collector.begin_step()      the triggered rows' advice requests go out
             updates.pay()               the gradient steps owed so far run while they are in flight
             collector.finish_step()     the (updated) actor acts, the answers are merged, the env steps
@@ -45,6 +45,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 
+from uavlae.algos import OFF_POLICY
 from uavlae.checkpoint import resolve_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
@@ -130,7 +131,7 @@ def check_run(cfg: DictConfig, budgets: bool = True) -> None:
     if tr.total_frames < tr.frames_per_batch:
         raise ValueError(f"trainer.total_frames={tr.total_frames} is below one collector batch "
                          f"(trainer.frames_per_batch={tr.frames_per_batch}): raise the budget or lower the batch")
-    if cfg.algo.name in ("sac", "ddpg") and tr.init_random_frames >= tr.total_frames:
+    if cfg.algo.name in OFF_POLICY and tr.init_random_frames >= tr.total_frames:
         raise ValueError(f"trainer.total_frames={tr.total_frames} does not exceed the random warm-up "
                          f"(trainer.init_random_frames={tr.init_random_frames}): no gradient step would run")
 
