@@ -13,6 +13,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from uavlae.algos.crossq import CrossQConfig, make_crossq, make_crossq_config
 from uavlae.algos.ddpg import DDPGConfig, make_ddpg, make_ddpg_config
 from uavlae.algos.ppo import PPOConfig, make_ppo, make_ppo_config
 from uavlae.algos.ppo_lagrangian import (
@@ -26,7 +27,7 @@ from uavlae.algos.sac import SACConfig, make_sac, make_sac_config
 from uavlae.algos.sac_lag import make_sac_lag
 from uavlae.factories import CONF_DIR
 from uavlae.envs import UAVEnv
-from uavlae.policies.networks import action_bounds, make_sac_actor
+from uavlae.policies.networks import CappedBatchRenorm1d, action_bounds, make_sac_actor
 
 CONF = CONF_DIR / "algo"
 
@@ -86,6 +87,7 @@ def test_lagrange_state_round_trip():
         ("ddpg", make_ddpg_config, DDPGConfig),
         ("ppo", make_ppo_config, PPOConfig),
         ("cpo", make_cpo_config, CPOConfig),
+        ("crossq", make_crossq_config, CrossQConfig),
     ],
 )
 def test_yaml_mirrors_config(name, make, model):
@@ -94,7 +96,13 @@ def test_yaml_mirrors_config(name, make, model):
     assert make(data) == model()
 
 
-@pytest.mark.parametrize("name", ["sac", "ddpg", "ppo", "cpo"])
+def test_sac_ln_yaml_is_sac_with_three_keys_changed():
+    data = yaml.safe_load((CONF / "sac_ln.yaml").read_text())
+    assert set(data) == set(SACConfig.model_fields)
+    assert make_sac_config(data) == SACConfig(hidden=(256, 256), layer_norm=True, loss_impl="torchrl")
+
+
+@pytest.mark.parametrize("name", ["sac", "ddpg", "ppo", "cpo", "crossq"])
 def test_make_learner_dispatches_on_name(name):
     from omegaconf import OmegaConf
 
@@ -116,6 +124,15 @@ def test_config_errors_name_the_field():
         make_ddpg_config({"noise": {"sigma_init": 0.1, "sigma_end": 0.2}})
     assert make_sac_config().actor_lr == 1e-4 and make_sac_config().critic_lr == 3e-4
     assert make_ppo_config().clip_epsilon == 0.2 and make_cpo_config().cost_limit == 0.05
+    with pytest.raises(ValueError, match="algo.layer_norm needs algo.loss_impl=torchrl"):
+        make_sac_config({"layer_norm": True})  # the fused default knows plain MLPs only
+    assert make_sac_config({"layer_norm": True, "loss_impl": "torchrl"}).layer_norm
+    with pytest.raises(ValueError, match="algo.policy_delay"):
+        make_crossq_config({"policy_delay": 0})
+    with pytest.raises(ValueError, match="algo.batch_renorm.momentum"):
+        make_crossq_config({"batch_renorm": {"momentum": 0.0}})
+    with pytest.raises(ValueError, match="algo.adam_beta1"):
+        make_crossq_config({"adam_beta1": 1.0})
 
 
 # ---------------------------------------------------------------- env data
@@ -191,6 +208,102 @@ def test_sac_update(env, obs_dim, replay_batch):
     assert not td_equal(loss.target_qvalue_network_params.data, target_before)
     sac.update(replay_batch.clone())
     assert sac.alpha != alpha_before  # automatic entropy tuning moves alpha
+
+
+def test_sac_layer_norm_networks(env, obs_dim, replay_batch):
+    """layer_norm: a LayerNorm after each hidden linear layer, before the ReLU, in the actor and
+    both Q nets; at initialisation (weight 1, bias 0) each row of a hidden layer leaves it with
+    mean 0 and (biased) variance 1."""
+    sac = make_sac({"layer_norm": True, "loss_impl": "torchrl", "hidden": (32, 16)}, obs_dim, env.action_spec)
+    mlp = sac.actor.module[0].module[0]
+    kinds = [type(m).__name__ for m in mlp]
+    assert kinds == ["Linear", "LayerNorm", "ReLU", "Linear", "LayerNorm", "ReLU", "Linear"]
+    assert [m.normalized_shape for m in mlp if isinstance(m, torch.nn.LayerNorm)] == [(32,), (16,)]
+    q_kinds = [type(m).__name__ for m in sac.loss.qvalue_network.module]
+    assert q_kinds == kinds
+    h = mlp[1](mlp[0](replay_batch["observation"]))
+    assert torch.allclose(h.mean(-1), torch.zeros(128), atol=1e-5)
+    assert torch.allclose(h.var(-1, unbiased=False), torch.ones(128), atol=1e-3)
+    actor_before, q_before = params(sac.actor), sac.loss.qvalue_network_params.data.clone()
+    assert all_finite(sac.update(replay_batch.clone()))
+    assert changed(actor_before, sac.actor) and not td_equal(sac.loss.qvalue_network_params.data, q_before)
+
+
+def test_crossq_update_and_policy_delay(env, obs_dim, replay_batch):
+    """Every update steps the Q nets; the actor and log(alpha) move on every policy_delay-th
+    (here the 3rd) only. No target nets. Adam's betas are CrossQ's (0.5, 0.999) on the actor and
+    Q nets."""
+    torch.manual_seed(0)
+    algo = make_crossq({}, obs_dim, env.action_spec)
+    loss = algo.loss
+    assert not any(k.startswith("target_") for k in loss.state_dict())
+    assert algo.optimisers["critic"].param_groups[0]["betas"] == (0.5, 0.999)
+    assert algo.optimisers["actor"].param_groups[0]["betas"] == (0.5, 0.999)
+    assert algo.optimisers["alpha"].param_groups[0]["betas"] == (0.9, 0.999)
+    actor_before = params(algo.actor)
+    for step in (1, 2, 3):
+        q_before = loss.qvalue_network_params.data.clone()
+        logs = algo.update(replay_batch.clone())
+        assert all_finite(logs) and logs["num_updates"] == step and logs["actor_step"] == float(step == 3)
+        assert not td_equal(loss.qvalue_network_params.data, q_before)
+        assert changed(actor_before, algo.actor) == (step == 3)
+        assert (algo.alpha != 1.0) == (step == 3)
+    assert {"loss_qvalue", "loss_actor", "loss_alpha", "alpha", "entropy", "td_error"} <= set(logs)
+    assert logs["loss_actor"] == algo.update(replay_batch.clone())["loss_actor"]  # held until the next actor step
+
+
+def test_crossq_batch_renorm_statistics_hand_computed(env, obs_dim, replay_batch):
+    """One Q step's forward runs s and s' together through each Q net's first batch
+    renormalisation, whose input is [observation, action]: its running mean starts at 0 and
+    moves by momentum 0.01 toward the mean of the 2N rows; its running variance starts at 1 and
+    moves toward their unbiased variance. On the observation columns this is a number of the
+    batch alone (the next actions are the actor's draws)."""
+    torch.manual_seed(0)
+    algo = make_crossq({}, obs_dim, env.action_spec)
+    algo.update(replay_batch.clone())
+    rows = torch.cat([replay_batch["observation"], replay_batch["next", "observation"]])  # [256, obs_dim]
+    first = algo.loss.qvalue_network_params["module", "0"]
+    for k in range(2):  # both Q nets see the same rows
+        assert torch.allclose(first["running_mean"][k, :obs_dim], 0.01 * rows.mean(0), atol=1e-6)
+        assert torch.allclose(first["running_var"][k, :obs_dim], 0.99 + 0.01 * rows.var(0, unbiased=True), atol=1e-6)
+        assert int(first["num_batches_tracked"][k]) == 1
+    state = algo.state_dict()["loss"]
+    assert torch.equal(state["qvalue_network_params.module.0.running_mean"], first["running_mean"])
+
+
+def test_batch_renorm_counter_stops_at_the_warm_up():
+    """torchrl's BatchRenorm1d counts past ``warmup_steps`` (an out-of-place clamp whose result is
+    dropped), so its r and d corrections grow past their clamps; CappedBatchRenorm1d holds the
+    count. When the first assertion fails torchrl has fixed it, and CappedBatchRenorm1d can go."""
+    from torchrl.modules import BatchRenorm1d
+
+    x = torch.randn(16, 3, generator=torch.Generator().manual_seed(0))
+    theirs, ours = BatchRenorm1d(3, warmup_steps=2), CappedBatchRenorm1d(3, warmup_steps=2)
+    for _ in range(5):
+        theirs(x), ours(x)
+    assert int(theirs.num_batches_tracked) == 5
+    assert int(ours.num_batches_tracked) == 2
+    ours.eval()
+    ours(x)
+    assert int(ours.num_batches_tracked) == 2  # eval mode neither counts nor moves the statistics
+
+
+def test_crossq_acting_ignores_modes_and_batch(env, obs_dim, replay_batch):
+    """The actor is a plain MLP: a row's deterministic action is the same alone or in a batch,
+    whatever the train/eval mode of the actor or of the Q nets (whose batch statistics never act)."""
+    torch.manual_seed(0)
+    algo = make_crossq({"policy_delay": 1}, obs_dim, env.action_spec)
+    algo.update(replay_batch.clone())
+    obs = TensorDict({"observation": replay_batch["observation"][:8]}, [8])
+    outs = []
+    for mode in (True, False):
+        algo.loss.train(mode)
+        algo.actor.train(mode)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            outs.append(algo.actor(obs.clone())["action"])
+            outs.append(torch.cat([algo.actor(obs[i : i + 1].clone())["action"] for i in range(8)]))
+    for o in outs[1:]:
+        assert torch.allclose(o, outs[0], atol=1e-6)
 
 
 def _sac_after(updates: int, obs_dim: int, spec, batch: TensorDictBase, **cfg) -> dict:
@@ -465,10 +578,13 @@ def _learners(obs_dim, spec):
         "ddpg": lambda: make_ddpg({}, obs_dim, spec),
         "ppo": lambda: make_ppo({"epochs": 1, "minibatch_size": 64}, obs_dim, spec),
         "cpo": lambda: make_ppo_lagrangian({"epochs": 1, "minibatch_size": 64, "lagrange": {"method": "pid"}}, obs_dim, spec),
+        "sac_ln": lambda: make_sac({"layer_norm": True, "loss_impl": "torchrl", "hidden": (256, 256)}, obs_dim, spec),
+        # policy_delay 2: the continuation below is an actor step, so the delay's phase is restored too
+        "crossq": lambda: make_crossq({"policy_delay": 2}, obs_dim, spec),
     }
 
 
-@pytest.mark.parametrize("name", ["sac", "sac_lag", "ddpg", "ppo", "cpo"])
+@pytest.mark.parametrize("name", ["sac", "sac_lag", "ddpg", "ppo", "cpo", "sac_ln", "crossq"])
 def test_state_dict_round_trip(name, env, obs_dim, replay_batch):
     make = _learners(obs_dim, env.action_spec)[name]
     torch.manual_seed(0)

@@ -87,6 +87,21 @@ def test_bad_values_are_rejected_by_name(hydra_ctx, override, field):
         validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
 
 
+def test_stronger_learners_compose(hydra_ctx):
+    """Beyond the paper: `algo=sac_ln` swaps SAC's networks for LayerNorm 2x256 under any SAC exp,
+    and `+exp=crossq` hands the loop CrossQ's numbers; both are off-policy, so advice may go with them."""
+    cfg = _compose("+exp=sac", "algo=sac_ln")
+    assert cfg.name == "sac" and cfg.algo.layer_norm and list(cfg.algo.hidden) == [256, 256]
+    assert cfg.algo.loss_impl == "torchrl" and cfg.algo.actor_lr == 1e-4 and cfg.trainer.batch_size == 256
+    validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+    cfg = _compose("+exp=crossq", "advisor=heuristic_override")
+    assert cfg.algo.policy_delay == 3 and cfg.trainer.utd_ratio == 1.0 and cfg.trainer.init_random_frames == 5000
+    validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+    cfg = _compose("+exp=sac", "algo.layer_norm=true")  # with the default fused update
+    with pytest.raises(ValueError, match=r"algo\.layer_norm needs algo\.loss_impl=torchrl"):
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+
+
 def test_advisor_on_an_on_policy_learner_is_rejected(hydra_ctx):
     cfg = _compose("+exp=ppo", "advisor=heuristic_override")
     with pytest.raises(ValueError, match="on-policy"):

@@ -201,6 +201,42 @@ def test_evaluate_export_and_fly(tmp_path):
     torch.testing.assert_close(load_actor(cwd / "a.pt2")[0](td["observation"]), expected)
 
 
+@pytest.mark.parametrize("overrides", [["+exp=crossq"], ["+exp=sac", "algo=sac_ln"]], ids=["crossq", "sac_ln"])
+def test_stronger_learners_train_and_export(tmp_path, overrides):
+    """The learners beyond the paper through the whole loop (256 frames, 57 gradient steps), and
+    their actors through ``python -m uavlae.export``: CrossQ's plain actor and SAC's LayerNorm
+    actor both become the deterministic action of the trained actor."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from uavlae.factories import make_env, make_learner
+    from uavlae.fly import load_actor
+    from uavlae.train import run
+
+    run_dir = tmp_path / "run"
+    final = run(_cfg(*overrides, f"run_dir={run_dir}", *TINY, "trainer.total_frames=256", "trainer.baselines=false"))
+    _check_run_outputs(run_dir, final, frames=256)
+    # B = 4, warm-up 32 frames, utd 0.25: one gradient step a step from the 8th to the 64th
+    assert final["updates"] == 57 and _csv_steps(run_dir, "train/alpha")
+
+    state, _ = load_checkpoint(run_dir)
+    saved = OmegaConf.create(state["config"])
+    env = make_env(saved.env, 3, seed=1)
+    learner = make_learner(saved.algo, env)
+    learner.load_state_dict(state["learner"])
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        expected = learner.actor(td.clone())["action"]
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    cli = [sys.executable, "-m", "uavlae.export", f"checkpoint={run_dir}", f"out={cwd / 'a.pt2'}"]
+    res = subprocess.run(cli, cwd=cwd, env={**os.environ, "PYTHONPATH": str(REPO_ROOT)}, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    exported, meta = load_actor(cwd / "a.pt2")
+    torch.testing.assert_close(exported(td["observation"]), expected)
+    assert meta["algo"] == saved.algo.name
+
+
 def test_checkpoint_is_atomic_and_falls_back(tmp_path):
     save_checkpoint({"counters": {"frames": 1}}, tmp_path)
     save_checkpoint({"counters": {"frames": 2}}, tmp_path)

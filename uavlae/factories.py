@@ -218,7 +218,7 @@ def validate_config(cfg: DictConfig) -> None:
     make_safety_filter_config(cfg.get("safety_filter"))
     if run.controller == "learner":
         if cfg.get("algo") is None:
-            raise ValueError("controller=learner needs an algo (algo=sac|sac_lag|ppo|ddpg|cpo|wang|theile)")
+            raise ValueError("controller=learner needs an algo (algo=sac|sac_lag|ppo|ddpg|cpo|wang|theile|crossq)")
         from uavlae.algos import MAKERS
 
         name = cfg.algo.name
@@ -244,6 +244,7 @@ def validate_config(cfg: DictConfig) -> None:
 
 
 def _algo_config(cfg: Any) -> Any:
+    from uavlae.algos.crossq import make_crossq_config
     from uavlae.algos.ddpg import make_ddpg_config
     from uavlae.algos.ppo import make_ppo_config
     from uavlae.algos.ppo_lagrangian import make_cpo_config
@@ -253,8 +254,8 @@ def _algo_config(cfg: Any) -> Any:
     from uavlae.algos.wang import make_wang_config
 
     makers = {
-        "sac": make_sac_config, "sac_lag": make_sac_lag_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config, "cpo": make_cpo_config,
-        "wang": make_wang_config, "theile": make_theile_config,
+        "sac": make_sac_config, "sac_lag": make_sac_lag_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config,
+        "cpo": make_cpo_config, "wang": make_wang_config, "theile": make_theile_config, "crossq": make_crossq_config,
     }
     return makers[cfg.name](cfg)
 

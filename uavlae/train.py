@@ -3,7 +3,7 @@
 The loop (:func:`train`), top to bottom, in the shape of TorchRL's ``sota-implementations``::
 
     while the frame budget is not spent:
-        off-policy (sac, ddpg), one env step at a time for a batch of T steps:
+        off-policy (sac, ddpg, crossq), one env step at a time for a batch of T steps:
             collector.begin_step()      the triggered rows' advice requests go out
             updates.pay()               the gradient steps owed so far run while they are in flight
             collector.finish_step()     the (updated) actor acts, the answers are merged, the env steps

@@ -3,7 +3,7 @@
 Every learner follows :class:`Learner`: ``actor`` (evaluated and deployed, deterministically),
 ``behaviour`` (what acts while collecting), ``off_policy``, ``anneal(frames)`` (the schedules
 that follow training progress), ``update(batch) -> dict[str, float]``, ``state_dict()`` /
-``load_state_dict()``. Off-policy (sac, sac_lag, ddpg): ``batch`` is a replay sample ``[N]``; on-policy
+``load_state_dict()``. Off-policy (sac, sac_lag, ddpg, crossq): ``batch`` is a replay sample ``[N]``; on-policy
 (ppo, cpo, wang, theile): a collector batch ``[*B, T]``, time last.
 """
 
@@ -14,6 +14,7 @@ from typing import Any, Protocol
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
+from uavlae.algos.crossq import CrossQ, CrossQConfig, make_crossq
 from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
 from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
 from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
@@ -23,10 +24,10 @@ from uavlae.algos.theile import Theile, TheileConfig, make_theile
 from uavlae.algos.wang import Wang, WangConfig, make_wang
 
 MAKERS = {"sac": make_sac, "sac_lag": make_sac_lag, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian,
-          "wang": make_wang, "theile": make_theile}
+          "wang": make_wang, "theile": make_theile, "crossq": make_crossq}
 # cut the observation into entities (wang) or find its maps (theile): need the env's ObservationLayout
 NEEDS_LAYOUT = frozenset({"wang", "theile"})
-OFF_POLICY = frozenset({"sac", "sac_lag", "ddpg"})
+OFF_POLICY = frozenset({"sac", "sac_lag", "ddpg", "crossq"})
 
 
 class Learner(Protocol):
@@ -62,6 +63,8 @@ def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec, layout: Any = 
 
 __all__ = [
     "CPOConfig",
+    "CrossQ",
+    "CrossQConfig",
     "DDPG",
     "DDPGConfig",
     "LagrangeMultiplier",

@@ -28,6 +28,10 @@ heuristic often acts (a log-likelihood of a tanh-Gaussian would diverge there). 
 ``clone_scale: actor_loss``, multiplied by ``max(|loss_actor|, 1)`` of the same sample
 (detached): TD3+BC's normalisation (Fujimoto & Gu 2021) by the size of the Q term, so one weight
 means the same in worlds whose returns differ by orders of magnitude.
+
+Also beyond the paper, off by default (``layer_norm: false``): a LayerNorm after each hidden
+linear layer of the actor and both Q nets, before the activation; with wider layers
+(``conf/algo/sac_ln.yaml``: 2x256) it asks whether Table 4's 2x64 networks limit SAC here.
 """
 
 from __future__ import annotations
@@ -60,6 +64,9 @@ class SACConfig(StrictConfig):
     name: Literal["sac"] = "sac"
     hidden: tuple[int, ...] = Field((64, 64), min_length=1)  # Table 4: 2 hidden layers of 64
     activation: Activation = "relu"
+    # Beyond the paper: a LayerNorm after each hidden layer of the actor and both Q nets (the
+    # OmniDrones-style SAC of conf/algo/sac_ln.yaml); needs loss_impl torchrl.
+    layer_norm: bool = False
     actor_lr: float = Field(1e-4, gt=0)  # Table 4
     critic_lr: float = Field(3e-4, gt=0)  # Table 4
     alpha_lr: float = Field(3e-4, gt=0)  # [decision] unstated; Haarnoja 2018 uses 3e-4
@@ -93,6 +100,11 @@ class SACConfig(StrictConfig):
             raise ValueError(
                 "algo.compile compiles torchrl's SACLoss and needs algo.loss_impl=torchrl; the default "
                 "fused update is faster uncompiled (docs/performance.md)"
+            )
+        if self.layer_norm and self.loss_impl != "torchrl":
+            raise ValueError(
+                "algo.layer_norm needs algo.loss_impl=torchrl: the fused gradients (sac_fused.py) are written "
+                "for plain MLPs, without LayerNorm"
             )
         return self
 
@@ -265,8 +277,8 @@ def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC
     """Build SAC for observations ``[obs_dim]`` and the env's bounded ``action_spec``."""
     cfg = make_sac_config(cfg)
     act_dim = action_bounds(action_spec).shape[-1]
-    actor = make_sac_actor(obs_dim, action_spec, cfg.hidden, cfg.activation)
-    qvalue = make_q_critic(obs_dim, act_dim, cfg.hidden, cfg.activation)
+    actor = make_sac_actor(obs_dim, action_spec, cfg.hidden, cfg.activation, cfg.layer_norm)
+    qvalue = make_q_critic(obs_dim, act_dim, cfg.hidden, cfg.activation, cfg.layer_norm)
     target_entropy = -float(act_dim) if cfg.target_entropy == "auto" else float(cfg.target_entropy)
     loss = SACLoss(
         actor_network=actor,

@@ -171,7 +171,7 @@ def make_sac_lag(cfg: SACLagConfig | Any, obs_dim: int, action_spec: TensorSpec)
     """Build SAC-Lagrangian for observations ``[obs_dim]`` and the env's bounded ``action_spec``."""
     cfg = make_sac_lag_config(cfg)
     sac = make_sac(cfg, obs_dim, action_spec)  # SAC's parts: actor, SACLoss, its Adam, target updater
-    cost_critic = make_q_critic(obs_dim, action_bounds(action_spec).shape[-1], cfg.hidden, cfg.activation)
+    cost_critic = make_q_critic(obs_dim, action_bounds(action_spec).shape[-1], cfg.hidden, cfg.activation, cfg.layer_norm)
     cost_target = copy.deepcopy(cost_critic).requires_grad_(False)
     # A group of SAC's one Adam, as SAC's parts are: the same maths as an Adam of its own, one
     # kernel call less per step

@@ -23,6 +23,7 @@ from torchrl.data import Bounded, TensorSpec
 from torchrl.modules import (
     MLP,
     AdditiveGaussianModule,
+    BatchRenorm1d,
     NormalParamExtractor,
     OrnsteinUhlenbeckProcessModule,
     ProbabilisticActor,
@@ -36,7 +37,9 @@ _ACTIVATIONS: dict[str, type[nn.Module]] = {"relu": nn.ReLU, "tanh": nn.Tanh, "e
 
 __all__ = [
     "Activation",
+    "CappedBatchRenorm1d",
     "action_bounds",
+    "make_batch_renorm_q_critic",
     "make_ddpg_actor",
     "make_ddpg_exploration",
     "make_ppo_actor",
@@ -53,12 +56,16 @@ def _activation(name: str) -> type[nn.Module]:
         raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {name!r}") from None
 
 
-def _mlp(in_features: int, out_features: int, hidden: Sequence[int], activation: str) -> MLP:
+def _mlp(in_features: int, out_features: int, hidden: Sequence[int], activation: str, layer_norm: bool = False) -> MLP:
+    """Linear layers of ``hidden`` widths; ``layer_norm``: a LayerNorm after each hidden linear
+    layer, before its activation (torchrl's MLP places ``norm_class`` there)."""
+    norm = {"norm_class": nn.LayerNorm, "norm_kwargs": [{"normalized_shape": h} for h in hidden]} if layer_norm else {}
     return MLP(
         in_features=in_features,
         out_features=out_features,
         num_cells=list(hidden),
         activation_class=_activation(activation),
+        **norm,
     )
 
 
@@ -87,12 +94,17 @@ SCALE_LB = 1e-4
 
 
 def _tanh_normal_actor(
-    obs_dim: int, action_spec: TensorSpec, hidden: Sequence[int], activation: str, return_log_prob: bool
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int],
+    activation: str,
+    return_log_prob: bool,
+    layer_norm: bool = False,
 ) -> ProbabilisticActor:
     box = action_bounds(action_spec)
     act_dim = box.shape[-1]
     extractor = NormalParamExtractor(scale_mapping=f"biased_softplus_{SCALE_AT_ZERO}_{SCALE_MIN}", scale_lb=SCALE_LB)
-    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation), extractor)
+    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden, activation, layer_norm), extractor)
     params = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         params,
@@ -109,13 +121,16 @@ def make_sac_actor(
     action_spec: TensorSpec,
     hidden: Sequence[int] = (64, 64),
     activation: Activation = "relu",
+    layer_norm: bool = False,
 ) -> ProbabilisticActor:
     """Tanh-Gaussian actor for SAC: ``"observation"`` -> ``"loc"``, ``"scale"``, ``"action"``.
 
     SACLoss draws its own reparameterised samples from ``get_dist``; no log-prob is written.
     Under ``ExplorationType.DETERMINISTIC`` the action is the tanh of the mean (evaluation).
+    ``layer_norm``: a LayerNorm after each hidden linear layer (it normalises each row alone, so
+    acting on one row and learning on a batch see the same network).
     """
-    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=False)
+    return _tanh_normal_actor(obs_dim, action_spec, hidden, activation, return_log_prob=False, layer_norm=layer_norm)
 
 
 def make_ppo_actor(
@@ -133,13 +148,72 @@ def make_q_critic(
     act_dim: int,
     hidden: Sequence[int] = (64, 64),
     activation: Activation = "relu",
+    layer_norm: bool = False,
 ) -> ValueOperator:
-    """Q(s, a): ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``."""
+    """Q(s, a): ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``;
+    ``layer_norm`` as :func:`make_sac_actor`."""
     return ValueOperator(
-        _mlp(obs_dim + act_dim, 1, hidden, activation),
+        _mlp(obs_dim + act_dim, 1, hidden, activation, layer_norm),
         in_keys=["observation", "action"],
         out_keys=["state_action_value"],
     )
+
+
+class CappedBatchRenorm1d(BatchRenorm1d):
+    """torchrl's ``BatchRenorm1d`` with its step counter held at ``warmup_steps``.
+
+    Batch renormalisation's correction factors r and d are clamped to [1/max_r, max_r] and
+    [-max_d, max_d] and weighted by ``num_batches_tracked // warmup_steps``, which should stop at
+    1. torchrl 0.14 writes ``self.num_batches_tracked.clamp_max(...)``, out of place, and drops the
+    result: the counter keeps counting, the weight reaches 2 after twice the warm-up and grows from
+    there, and r and d leave their clamps. Clamping in place after each training forward keeps the
+    weight at 1 (tests/test_algos.py checks that torchrl still needs this)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = super().forward(x)
+        if self.training:
+            # out of place, then copied: vmap (CrossQLoss runs the Q nets under it) has no rule for clamp_
+            self.num_batches_tracked.copy_(self.num_batches_tracked.clamp_max(self.warmup_steps))
+        return out
+
+
+class _ConcatSequential(nn.Sequential):
+    """``nn.Sequential`` over the inputs concatenated on their last dimension (as torchrl's MLP)."""
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return super().forward(torch.cat(inputs, -1))
+
+
+def make_batch_renorm_q_critic(
+    obs_dim: int,
+    act_dim: int,
+    hidden: Sequence[int],
+    activation: Activation = "relu",
+    *,
+    momentum: float = 0.01,
+    eps: float = 1e-3,
+    warmup_steps: int = 100_000,
+    max_r: float = 3.0,
+    max_d: float = 5.0,
+) -> ValueOperator:
+    """Q(s, a) for CrossQ: ``("observation", "action")`` -> ``"state_action_value"`` ``[..., 1]``,
+    with a batch renormalisation before every linear layer, the input's included::
+
+        BRN -> Linear -> act -> BRN -> Linear -> act -> ... -> BRN -> Linear(1)
+
+    (the CrossQ paper's critic, as sb3-contrib builds it). In training mode each BRN normalises
+    by the statistics of the batch it is given: CrossQLoss gives it the current and the next
+    state-actions together, so both are normalised alike; in eval mode (CrossQLoss's actor loss)
+    it uses its running statistics, which are buffers of the module and so of its state dict."""
+    act = _activation(activation)
+    norm = {"momentum": momentum, "eps": eps, "warmup_steps": warmup_steps, "max_r": max_r, "max_d": max_d}
+    layers: list[nn.Module] = []
+    width = obs_dim + act_dim
+    for h in hidden:
+        layers += [CappedBatchRenorm1d(width, **norm), nn.Linear(width, h), act()]
+        width = h
+    layers += [CappedBatchRenorm1d(width, **norm), nn.Linear(width, 1)]
+    return ValueOperator(_ConcatSequential(*layers), in_keys=["observation", "action"], out_keys=["state_action_value"])
 
 
 def make_value_critic(
