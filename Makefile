@@ -455,12 +455,16 @@ advice-report: $(STAMP)
 
 # ---------------------------------------------------------------------------- the pilot study
 # A pilot worth deploying (uavlae/experiments/README.md, "A pilot worth deploying"): a ladder of
-# recipes in SPEC's world (env=default), each rung adding one ingredient to the one before: the
+# recipes in SPEC's world (env=default), each rung adding one ingredient to the one above it: the
 # observation in the DCU's frame, the safety filter in training (every run is also flown through
-# the filter at deployment and alone), the Lagrangian constraint, a stronger learner, shaping and
-# teaching from the planner. Screening: 1M frames, the tuning seeds; the verdict: the chosen
-# recipe (+exp=pilot) at 2.5M frames on seeds 0-4, also flown on the held-out set. Every stage is
-# a resumable sweep: run the same command again. PILOT_JOBS: runs side by side (one per core).
+# the filter at deployment and alone, so "deploy only" is every unfiltered rung's filtered row),
+# shaping from the planner's distance field (training only), teaching from the planner (cloning
+# and a phase-out, as the advice study's teach), the Lagrangian constraint, a stronger learner.
+# [decision] The cheap ingredients come first: the Lagrangian (autograd, ~4x SAC's fused update)
+# and the wider LayerNorm networks (~9x) take most of the compute, so they are added last, on the
+# best cheap rung. Screening: 1M frames, the tuning seeds; the verdict: the chosen recipe
+# (+exp=pilot) at 2.5M frames on seeds 0-4, also flown on the held-out set. Every stage is a
+# resumable sweep: run the same command again. PILOT_JOBS: runs side by side (one per core).
 PILOT_EXP_ROOT ?= runs
 PILOT_JOBS ?= 1
 PILOT_TUNE_SEEDS ?= 100,101
@@ -469,28 +473,35 @@ PILOT = $(TRAIN_SWEEP) +sweep=pilot +profile=quick env=default experiment.root=$
 	hydra.launcher.n_jobs=$(PILOT_JOBS)
 PILOT_SCREEN = $(PILOT) experiment.point=screen trainer.total_frames=1000000 trainer.replay_capacity=1000000 \
 	seed=$(PILOT_TUNE_SEEDS)
-# each rung: the keys it adds (the ladder: every rung keeps the ones above it)
+# each rung: its keys (the ladder: every rung keeps the ones above it)
 RUNG_WORLD = +exp=sac safety_filter.mode=deploy
 RUNG_EGO = $(RUNG_WORLD) env.obs_frame=ego
 RUNG_FILTER = +exp=sac env.obs_frame=ego safety_filter.mode=train_and_deploy
-RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.cost.rz_speeding=1.0
-RUNG_LEARNER = $(RUNG_LAG) algo=sac_lag_ln
-RUNG_SHAPING = $(RUNG_LEARNER) env.reward.progress_weight=1.0 env.reward.progress_metric=geodesic
-.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-lag pilot-screen-learner \
-	pilot-screen-shaping pilot-verdict pilot-records pilot-report
+RUNG_SHAPED = $(RUNG_FILTER) env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic
+RUNG_TEACH = +exp=sac_heuristic_planner env.obs_frame=ego safety_filter.mode=train_and_deploy \
+	env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic algo.clone_weight=0.4 \
+	algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
+RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.reward.progress_weight=8.0 \
+	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0
+RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
+.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach \
+	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-records pilot-report
 pilot-study: pilot-screen pilot-verdict pilot-records pilot-report
-pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-lag pilot-screen-learner pilot-screen-shaping
+pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach pilot-screen-lag \
+	pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
 pilot-screen-filter: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_FILTER) experiment.method=sac_ego_filter
+pilot-screen-shaped: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_SHAPED) experiment.method=sac_ego_filter_shaped
+pilot-screen-teach: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_TEACH) experiment.method=sac_ego_filter_shaped_teach
 pilot-screen-lag: $(STAMP)
-	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_filter
+	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_filter_shaped
 pilot-screen-learner: $(STAMP)
-	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter
-pilot-screen-shaping: $(STAMP)
-	$(PILOT_SCREEN) $(RUNG_SHAPING) experiment.method=saclagln_ego_filter_shaped
+	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter_shaped
 pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
 pilot-report: $(STAMP)
