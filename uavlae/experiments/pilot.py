@@ -10,6 +10,10 @@ Two sub-commands:
   flown, on the held-out set; the greedy heuristic and uniform random on the selection set) and
   ``curves.csv`` (every evaluation during training: frames, training wall clock, the pilot's and
   the actor's metrics). Records of runs not under ``RUNS_DIR`` are kept.
+- ``references --out results/pilot``: the reference policies flown on the same sets, recorded
+  as stage ``references`` (one "seed" each): the greedy heuristic, the global planner, uniform
+  random, plain-SAC-free controllers with and without the filter, and the follower of the
+  planner's geodesic direction (what planner knowledge buys) with and without the filter.
 - ``report results/pilot``: ``report.md`` from those files alone: per stage and rung, the pilot
   and the actor alone side by side with stratified-bootstrap intervals over seeds x scenarios
   (:mod:`uavlae.experiments.advice_stats`), the filter's share, the compute, the time to a pilot
@@ -115,6 +119,68 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
     return {"runs": len(runs), "episodes": len(episodes), "curve_rows": len(curves), "unfinished": len(unfinished)}
 
 
+# ---------------------------------------------------------------------------- the references
+
+SETS = {"selection": Path("results/eval_set_32.json"), "heldout": Path("results/pilot/heldout_set_256.json")}
+EVAL_SEED = 12345  # trainer.eval_seed: the OU stream every run's evaluation flies
+
+
+def _env_cfg(name: str) -> Any:
+    from hydra import compose, initialize_config_dir
+
+    from uavlae.envs import make_env_config
+    from uavlae.factories import CONF_DIR
+
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return make_env_config(compose("config", overrides=[f"env={name}"]).env)
+
+
+def _follower(td: Any) -> Any:
+    """The planner's geodesic direction at full speed: ``env=shaped_geodesic_soft``'s ego columns
+    end with the target vector and its unit direction, then the nearest BZ and NFZ vectors."""
+    td.set("action", td.get("observation")[..., -6:-4])
+    return td
+
+
+def write_references(out: Path, sets: dict[str, Path] | None = None) -> dict[str, int]:
+    """Fly the reference policies on each set (module doc) and add their episodes to the records."""
+    import torch
+
+    from uavlae.envs.scenario import load_scenarios
+    from uavlae.evaluate import Evaluator
+    from uavlae.policies.greedy import GreedyPolicy
+    from uavlae.policies.heuristic import HeuristicPolicy
+    from uavlae.policies.random import UniformRandomPolicy
+    from uavlae.policies.safety import FilteredPolicy, SafetyFilter
+
+    spec, geodesic = _env_cfg("default"), _env_cfg("shaped_geodesic_soft")
+    episodes = []
+    for which, path in (sets or SETS).items():
+        scenarios = load_scenarios(path)
+        for world, cfg in (("spec", spec), ("geodesic", geodesic)):
+            ev = Evaluator(cfg, scenarios, seed=EVAL_SEED, n_plots=0)
+            if world == "spec":
+                policies = {"greedy": GreedyPolicy(cfg), "planner": HeuristicPolicy(cfg),
+                            "random": UniformRandomPolicy(ev.env.action_spec, seed=EVAL_SEED),
+                            "random_filtered": FilteredPolicy(UniformRandomPolicy(ev.env.action_spec, seed=EVAL_SEED),
+                                                              SafetyFilter(cfg, {"mode": "deploy"}))}
+            else:  # the same world and scenarios; its observation carries the geodesic direction
+                policies = {"follower": _follower,
+                            "follower_filtered": FilteredPolicy(_follower, SafetyFilter(cfg, {"mode": "deploy"}))}
+            for name, policy in policies.items():
+                folder = out / "references" / which / name
+                with torch.no_grad():
+                    ev.run(policy, folder)
+                for i, row in enumerate(_episodes(folder / "episodes.csv")):
+                    episodes.append({"stage": "references", "rung": name, "seed": 0, "evaluation": "alone",
+                                     "set": which, "scenario": int(row.get("row", i)),
+                                     **{c: row.get(c) for c in EPISODE_COLUMNS}})
+                print(f"{which} {name}", flush=True)
+    old = [r for r in _read_rows(out / "episodes.csv") if r["stage"] != "references"]
+    _write_csv(out / "episodes.csv", old + episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    return {"episodes": len(episodes)}
+
+
 # ---------------------------------------------------------------------------- the report
 
 
@@ -215,7 +281,21 @@ def build(records: Path) -> Path:
              "and on the same scenarios.", "",
              "Floors of a deployable pilot: " + ", ".join(f"{m} {op} {b}" for m, (op, b) in FLOORS.items())
              + ", ECR no worse than the greedy heuristic's on the same scenarios.", ""]
-    stages = list(dict.fromkeys(r["stage"] for r in runs))
+    refs = sorted({(k[1], k[3]) for k in cells if k[0] == "references"}, key=lambda k: (k[1], k[0]))
+    for which in ("selection", "heldout"):
+        rows = [r for r, w in refs if w == which]
+        if rows:
+            lines += [f"## References on the {which} set", "",
+                      "Flown once each (no learning; `python -m uavlae.experiments.pilot references`): the greedy "
+                      "heuristic, the global planner, uniform random (and through the filter), and the follower of "
+                      "the planner's geodesic direction (`env=shaped_geodesic_soft`'s column; what planner knowledge "
+                      "buys, not a pilot) alone and through the filter.", "",
+                      "| policy | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
+            for rung in rows:
+                g = grid_from_rows(cells[("references", rung, "alone", which)])
+                lines.append(f"| {rung} | " + " | ".join(fmt(*interval(g, m)) for m in METRICS) + " |")
+            lines.append("")
+    stages = [s for s in dict.fromkeys(r["stage"] for r in runs) if s != "references"]
     for stage in stages:
         ref = {ev: cells.get((stage, _order(runs, stage)[0], ev, "selection")) for ev in ("heuristic", "random")}
         greedy = grid_from_rows(ref["heuristic"]) if ref["heuristic"] else None
@@ -246,11 +326,15 @@ def main(argv: list[str] | None = None) -> None:
     r = sub.add_parser("records", help="the study's runs -> CSV records")
     r.add_argument("runs", type=Path)
     r.add_argument("--out", type=Path, default=Path("results/pilot"))
+    f = sub.add_parser("references", help="fly the reference policies on the selection and held-out sets")
+    f.add_argument("--out", type=Path, default=Path("results/pilot"))
     rep = sub.add_parser("report", help="CSV records -> report.md")
     rep.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
     args = p.parse_args(argv)
     if args.cmd == "records":
         print(json.dumps(write_records(args.runs, args.out)))
+    elif args.cmd == "references":
+        print(json.dumps(write_references(args.out)))
     else:
         print(build(args.records))
 
