@@ -485,8 +485,9 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy en
 	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach \
-	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-records pilot-report
-pilot-study: pilot-screen pilot-verdict pilot-records pilot-report
+	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-report
+pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach pilot-screen-lag \
 	pilot-screen-learner
 pilot-screen-frame: $(STAMP)
@@ -502,6 +503,26 @@ pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_filter_shaped
 pilot-screen-learner: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_filter_shaped
+# the verdict: the chosen recipe (+exp=pilot, fixed before these runs) on the verdict seeds at the
+# paper's budget, each flown on the held-out set through its filter and alone; seed 0's pilot exported
+PILOT_VERDICT_FRAMES ?= 2500000
+HELDOUT = results/pilot/heldout_set_256.json
+comma := ,
+pilot-verdict: $(STAMP)
+	$(PILOT) experiment.point=verdict +exp=pilot seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
+		trainer.replay_capacity=$(PILOT_VERDICT_FRAMES) experiment.method=pilot
+	$(MAKE) pilot-heldout pilot-export
+pilot-heldout: $(STAMP)
+	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed$$s; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(HELDOUT) experiment.reuse=true \
+			experiment.eval_dir=$$d/evaluate/heldout_pilot trainer.eval_plots=0 || exit 1; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(HELDOUT) experiment.reuse=true \
+			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/heldout_alone trainer.eval_plots=0 || exit 1; done
+pilot-export: $(STAMP)
+	$(BIN)/python -m uavlae.export checkpoint=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed0 out=results/pilot/pilot.pt2
+	$(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --all | tail -1
+pilot-references: $(STAMP)
+	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot
 pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
 pilot-report: $(STAMP)
