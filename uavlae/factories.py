@@ -25,6 +25,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
+from uavlae.errors import ConfigError
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
 from uavlae.policies.safety import make_safety_filter, make_safety_filter_config  # noqa: F401  (a factory of its own group)
 from uavlae.policies.student import StudentConfig
@@ -53,7 +54,7 @@ def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
     try:
         return model.model_validate(_container(cfg))
     except ValidationError as e:
-        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
+        raise ConfigError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
 
 
 # ---------------------------------------------------------------------------- configs
