@@ -83,12 +83,13 @@ class TrainerConfig(StrictModel):
     keep_checkpoints: int = Field(ge=1, le=2)
     progress_bar: bool
     progress_every_s: float = Field(default=60.0, ge=0)  # a progress line this often where no bar shows (0: none)
+    progress_first_s: float = Field(default=10.0, ge=0)  # the first line this soon (never later than progress_every_s)
     log_every_batches: int = Field(ge=1)
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
     baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
     eval_with_advisor: bool = True  # advised runs: at the end also fly the actor with its advisor (full trigger)
-    eval_advisor_max_calls: int | None = Field(default=None, ge=0)  # rows that evaluation may ask (None: no budget)
+    eval_advisor_max_calls: int | None = Field(default=64, ge=0)  # rows that evaluation may ask (None: no budget)
     eval_chunk: int | None = Field(default=None, ge=1)  # controller=llm: scenarios flown together (None: all)
     llm_call_budget: int | None = Field(default=None, ge=0)  # controller=llm: LLM decisions this invocation may ask (0: only score)
     eval_shards: int = Field(default=1, ge=1)  # controller=llm: processes that fly the evaluation side by side
@@ -151,6 +152,7 @@ class LoggerConfig(StrictModel):
 
     csv: bool
     wandb: WandbConfig
+    library_output: bool = False  # wandb's and torchrl's own messages on the terminal too (else the run's log only)
 
 
 class ExperimentConfig(StrictModel):

@@ -47,10 +47,12 @@ __all__ = [
 # May differ between a run's recorded config and the command that continues it. Runtime settings
 # (how it runs, not what it computes) are always taken from the new command; the budgets only
 # when the command sets them (extending total_frames continues training to the new budget);
-# the LLM alone's call budget and shards are how one evaluation is split into invocations.
-RUNTIME_KEYS = ("threads", "device", "trainer.progress_bar", "trainer.progress_every_s", "logger.wandb.mode")
+# the LLM alone's call budget and shards are how one evaluation is split into invocations, and the
+# with-advisor evaluation's call budget is what a finished training may spend on that one evaluation.
+RUNTIME_KEYS = ("threads", "device", "trainer.progress_bar", "trainer.progress_every_s", "trainer.progress_first_s",
+                "logger.wandb.mode", "logger.library_output")
 BUDGET_KEYS = ("trainer.total_frames", "trainer.total_episodes", "trainer.llm_call_budget", "trainer.eval_shard",
-               "trainer.eval_shards")
+               "trainer.eval_shards", "trainer.eval_advisor_max_calls")
 RESUMABLE_KEYS = RUNTIME_KEYS + BUDGET_KEYS
 # settings removed from the code, which a run saved before holds: they had no effect (llm.fallback
 # was logged, never applied: advisor.fallback acted), so a recorded config is read without them
@@ -59,7 +61,7 @@ REMOVED_KEYS = ("llm.fallback",)
 BOOKKEEPING_KEYS = ("resume", "experiment.reuse", "run_dir", "checkpoint", "out")
 # what a rerun after a kill before the first checkpoint removes: everything the run wrote
 RUN_OUTPUTS = ("config.json", "config.yaml", "meta.json", "summary.json", "final_metrics.json", "eval_set.json",
-               "logs", "eval", "checkpoints", "wandb", ".hydra", "train.log")
+               "logs", "eval", "checkpoints", "wandb", ".hydra", "train.log", "error.txt")
 
 
 class RunFolderBusy(RuntimeError):
