@@ -275,14 +275,6 @@ def test_a_progress_file_of_the_first_format_continues(tmp_path):
 # ---------------------------------------------------------------------------- the real local server
 
 
-@pytest.fixture(scope="module")
-def local_llm():
-    from uavlae.llm.server import local_server
-
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
-
-
 def _cfg(*overrides: str):
     from hydra import compose, initialize_config_dir
 

@@ -320,14 +320,6 @@ LLM_TINY = [
 ]
 
 
-@pytest.fixture(scope="module")
-def local_llm():
-    from uavlae.llm.server import local_server
-
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
-
-
 @pytest.mark.integration
 @pytest.mark.parametrize("exp, extra", [("sac_llm", ["advisor.d_th=1000.0"]), ("sac_llm_fp", ["advisor.fp=1.0"]), ("llm", [])])
 def test_llm_exps_against_the_local_server(tmp_path, local_llm, exp, extra):
