@@ -621,7 +621,8 @@ def test_a_training_run_against_an_endpoint_that_is_down_stops_with_one_message(
             "trainer.baselines=false", "logger.wandb.mode=disabled", "advisor.d_th=1000.0",
             "llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
             "llm.cache_mode=off", "llm.row_deadline_s=1.0", "llm.max_retries=2", "llm.backoff_base_s=0.01",
-            "llm.backoff_max_s=0.05", "llm.max_failed_rows=3", "llm.max_concurrency=1"]
+            "llm.backoff_max_s=0.05", "llm.max_failed_rows=3", "llm.max_concurrency=1",
+            "llm.preflight=false"]  # an endpoint that goes down during the run (the preflight: the test below)
     try:
         t0 = time.monotonic()
         proc = subprocess.run([sys.executable, "-m", "uavlae.train", *args], cwd=root, capture_output=True,
@@ -637,6 +638,32 @@ def test_a_training_run_against_an_endpoint_that_is_down_stops_with_one_message(
     assert not (tmp_path / "run" / "final_metrics.json").exists()  # it did not go on as plain SAC
     # start-up (imports, env, networks) takes most of it; the LLM's part is 3 s at most when it hangs
     assert took < 60
+
+
+@pytest.mark.parametrize("kind", ["refused", "error500"])
+def test_an_endpoint_that_is_down_before_the_run_stops_it_before_any_work(tmp_path, kind):
+    """The same command with the preflight on (every preset's default): the one question before
+    the run meets the fault, and the command ends with one line naming the URL, exit status 2,
+    before a frame is trained and without leaving its run folder (it held nothing of its own)."""
+    ep = Endpoint(kind)
+    root = Path(__file__).resolve().parents[1]
+    run_dir = tmp_path / "run"
+    args = ["+exp=sac_llm", f"run_dir={run_dir}", "trainer.total_frames=64", "trainer.env_batch_size=2",
+            "trainer.frames_per_batch=8", "trainer.init_random_frames=0", "logger.wandb.mode=disabled",
+            "llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
+            "llm.cache_mode=off", "llm.row_deadline_s=1.0", "llm.max_retries=1", "llm.backoff_base_s=0.01",
+            "llm.backoff_max_s=0.05"]
+    try:
+        proc = subprocess.run([sys.executable, "-m", "uavlae.train", *args], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120, env={**__import__("os").environ, "UAVLAE_TEST_KEY": KEY})
+    finally:
+        ep.close()
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert proc.stderr.startswith(f"error: LLM endpoint {ep.url}/chat/completions (key from $UAVLAE_TEST_KEY) did "
+                                  "not answer a first question before the run: "), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr and KEY not in proc.stderr
+    assert ep.hits == {"refused": 0, "error500": 2}[kind]  # one question and its one retry
+    assert not run_dir.exists()
 
 
 def test_a_row_deadline_bounds_retries_whatever_their_number(caplog):
