@@ -215,3 +215,31 @@ def test_a_failed_job_removes_a_folder_of_hydras_files_and_leaves_error_txt_besi
     with pytest.raises(ZeroDivisionError), recorded(None, lambda: run, "train.log"):
         1 / 0  # a bug: its traceback beside the run
     assert (run / "error.txt").read_text().startswith("Traceback (most recent call last)")
+
+
+def test_the_libraries_own_messages_go_to_the_runs_log_unless_asked_for(tmp_path, monkeypatch):
+    """torchrl's coloured console handler gives way to the root logger's file handler (Hydra's
+    train.log in the run folder); wandb is silenced unless the environment says otherwise."""
+    import logging
+
+    from uavlae.runlog import route_library_output
+
+    monkeypatch.delenv("WANDB_SILENT", raising=False)
+    torchrl, root = logging.getLogger("torchrl"), logging.getLogger()
+    before = list(torchrl.handlers)
+    log_file = logging.FileHandler(tmp_path / "train.log")
+    root.addHandler(log_file)
+    try:
+        route_library_output(True)  # asked for: nothing changes
+        assert torchrl.handlers == before and "WANDB_SILENT" not in os.environ
+        route_library_output(False)
+        consoles = [h for h in torchrl.handlers
+                    if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler)]
+        assert consoles == [] and log_file in torchrl.handlers and os.environ["WANDB_SILENT"] == "true"
+        torchrl.info("Initialized LazyTensorStorage")
+        log_file.flush()
+        assert "Initialized LazyTensorStorage" in (tmp_path / "train.log").read_text()
+    finally:
+        root.removeHandler(log_file)
+        torchrl.handlers[:] = before
+        log_file.close()
