@@ -164,7 +164,8 @@ def test_sigterm_during_the_with_advisor_evaluation_keeps_the_checkpoint_and_pri
                 ["trainer.eval_advisor_max_calls=2"])
     assert final["frames"] == 16 and final["advised/override/budget_skipped"] > 0
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["advised_eval"]["max_calls"] == 2
+    assert summary["advised_eval"]["max_calls"] == 2 and summary["advised_eval"]["llm_requests"] == 2
+    assert summary["override"].get("advisor/requests", 0) == 0  # training asked nothing: its count stays apart
     assert "trainer.eval_advisor_max_calls=2 rows were asked, then the actor flew" in format_summary(summary)
 
 

@@ -49,9 +49,9 @@ def _summary(**more) -> dict:
 
 def test_the_llm_line_is_one_count_with_its_parts():
     text = format_summary(_summary())
-    (line,) = [ln for ln in text.splitlines() if ln.startswith("  LLM: ")]
+    (line,) = [ln for ln in text.splitlines() if ln.startswith("  LLM in training: ")]
     # 45 calls = 26 first calls (45 - 15 - 4) + 15 asked again + 4 retries; 45 per 1000 frames; 9000 / 45 = 200
-    assert line.startswith("  LLM: 45 HTTP calls (45.0 per 1000 frames) = 26 first calls for the 30 rows asked "
+    assert line.startswith("  LLM in training: 45 HTTP calls (45.0 per 1000 frames) = 26 first calls for the 30 rows asked "
                            "(4 answered from the cache, rows with the same prompt sharing one call) + 15 asked again "
                            "after an answer it could not use + 4 transport retries; per call p50 nan s, p95 2.50 s, "
                            "200 prompt + 20 completion tokens")
@@ -64,8 +64,11 @@ def test_the_summary_says_when_the_with_advisor_budget_left_rows_to_the_actor():
     assert ("  The actor with its advisor: trainer.eval_advisor_max_calls=64 rows were asked, then the actor flew "
             "346 of the 410 triggered rows itself") in bit
     unbitten = format_summary(_summary(advised_eval={"max_calls": 64, "triggered": 40, "advised": 40,
-                                                     "budget_skipped": 0}))
+                                                     "budget_skipped": 0, "llm_requests": 40, "llm_calls": 52}))
     assert "eval_advisor_max_calls" not in unbitten
+    # its own LLM calls, apart from training's 45
+    assert ("  The actor with its advisor asked the LLM for 40 rows in 52 HTTP calls (not counted in the LLM line "
+            "of training below).") in unbitten
 
 
 def test_the_cost_line_reads_a_null_price_as_none():

@@ -84,7 +84,7 @@ def format_summary(summary: dict[str, Any]) -> str:
                 f"(within {ov.get('agree_tol', 0.1):g} in {100 * agree:.0f}% of rows)"
                 + (f"; trigger phased out to {ov['phase']:.2f} of d_th / fp" if ov.get("phase", 1.0) < 1.0 else "") + "."
             )
-        if kind == "llm" and ov.get("advisor/calls") is not None:
+        if kind == "llm" and ov.get("advisor/calls") is not None:  # training's calls
             lines.append(_llm_line(ov, f_, summary.get("overlap_s")))
     lines.extend(_cost_lines(summary.get("cost"), summary.get("override")))
     la = summary.get("llm_alone")
@@ -145,7 +145,7 @@ def _llm_line(ov: dict[str, Any], frames: int, overlap_s: float | None) -> str:
     first = calls - again - retries
     n = max(float(calls), 1.0)
     return (
-        f"  LLM: {calls:,} HTTP calls ({1000 * calls / frames:.1f} per 1000 frames) = {first:,} first calls for the "
+        f"  LLM in training: {calls:,} HTTP calls ({1000 * calls / frames:.1f} per 1000 frames) = {first:,} first calls for the "
         f"{asked:,} rows asked ({hits:,} answered from the cache, rows with the same prompt sharing one call) + "
         f"{again:,} asked again after an answer it could not use + {retries:,} transport retries; per call p50 "
         f"{_num(ov.get('advisor/latency_p50_s')):.2f} s, p95 {_num(ov.get('advisor/latency_p95_s')):.2f} s, "
@@ -156,12 +156,20 @@ def _llm_line(ov: dict[str, Any], frames: int, overlap_s: float | None) -> str:
 
 
 def _budget_lines(ev: dict[str, Any] | None) -> list[str]:
-    """Where the with-advisor evaluation's call budget left triggered rows to the actor."""
-    if not ev or not ev.get("budget_skipped"):
+    """The with-advisor evaluation's own LLM calls (apart from training's, counted below), and
+    where its call budget left triggered rows to the actor."""
+    if not ev:
         return []
-    return [f"  The actor with its advisor: trainer.eval_advisor_max_calls={ev['max_calls']} rows were asked, then the "
-            f"actor flew {int(ev['budget_skipped']):,} of the {int(ev['triggered']):,} triggered rows itself, so that "
-            "row shows less of the advisor than it would give (null asks every row, at the LLM's cost)."]
+    out = []
+    if ev.get("llm_calls"):
+        out.append(f"  The actor with its advisor asked the LLM for {int(ev['llm_requests']):,} rows in "
+                   f"{int(ev['llm_calls']):,} HTTP calls (not counted in the LLM line of training below).")
+    if ev.get("budget_skipped"):
+        out.append(f"  The actor with its advisor: trainer.eval_advisor_max_calls={ev['max_calls']} rows were asked, "
+                   f"then the actor flew {int(ev['budget_skipped']):,} of the {int(ev['triggered']):,} triggered rows "
+                   "itself, so that row shows less of the advisor than it would give (null asks every row, at the "
+                   "LLM's cost).")
+    return out
 
 
 def _cost_lines(cost: dict[str, Any] | None, ov: dict[str, Any] | None) -> list[str]:

@@ -433,14 +433,18 @@ def _finish(t: Training) -> dict[str, Any]:
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in t.learner.actor.parameters())),
     }
     advised = cfg.advisor.kind != "none"
-    cost = t.policy.cost() if advised else {}  # training's: measured, not replayed; before the advised evaluation
+    # training's, measured (not replayed): before the evaluation with the advisor adds its own calls
+    cost = t.policy.cost() if advised else {}
+    totals = t.policy.run_totals() if advised else None
     if t.collector.safety is not None:
         final.update(_prefixed("safety/train", t.collector.safety_totals.snapshot()))
+    advised_eval = None
     if advised:
-        final.update(_prefixed("override", _deterministic_counts(t.policy.run_totals())))
+        final.update(_prefixed("override", _deterministic_counts(totals)))  # type: ignore[arg-type]
         final.update(_prefixed("cost", cost))
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(t))
+            advised_eval = _advised_eval_counts(tr, final, totals, t.policy.run_totals())  # type: ignore[arg-type]
     t_base = time.perf_counter()
     if tr.baselines:
         final.update(_baselines(cfg, t.evaluation, t.run_dir))
@@ -452,11 +456,8 @@ def _finish(t: Training) -> dict[str, Any]:
         "fps": t.frames / train_s if train_s else None, "update_s": c["update_s"], "overlap_s": c["overlap_s"],
         "baselines_s": time.perf_counter() - t_base, "eval_episodes": len(t.evaluation.scenarios),
         "metrics": {**_actor_rows(t), **advised_row(final, str(cfg.name)), **baseline_rows(final)},
-        "advisor_kind": str(cfg.advisor.kind), "override": t.policy.run_totals() if advised else None,
-        "cost": {**cost, "currency": t.policy.currency()} if cost else None,
-        "advised_eval": {"max_calls": tr.eval_advisor_max_calls, **{k: final.get(f"advised/override/{k}") for k in
-                                                                  ("triggered", "advised", "budget_skipped")}}
-        if advised and tr.eval_with_advisor else None,
+        "advisor_kind": str(cfg.advisor.kind), "override": totals,
+        "cost": {**cost, "currency": t.policy.currency()} if cost else None, "advised_eval": advised_eval,
         "pictures": pictures(t.run_dir, t.frames),
     })
     log.info("%s done at %d frames: %s", cfg.name, t.frames,
@@ -492,6 +493,18 @@ def _advised_evaluation(t: Training) -> dict[str, float]:
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
             "advised", "budget_skipped", "frames", "source/llm", "source/student", "source/fallback")
     return {**_prefixed("advised", flight.metrics), **_prefixed("advised/override", {k: flight.stats[k] for k in keep})}
+
+
+def _advised_eval_counts(tr: Any, final: dict[str, Any], before: dict[str, Any],
+                         after: dict[str, Any]) -> dict[str, Any]:
+    """The evaluation with the advisor for the summary: its budget, its triggered rows, those it
+    asked and those the budget left to the actor, and the LLM's rows and HTTP calls it cost (the
+    advisor's counters after it less before: the training's stay apart)."""
+    out = {"max_calls": tr.eval_advisor_max_calls,
+           **{k: final.get(f"advised/override/{k}") for k in ("triggered", "advised", "budget_skipped")}}
+    for k in ("requests", "calls"):
+        out[f"llm_{k}"] = float(after.get(f"advisor/{k}", 0) or 0) - float(before.get(f"advisor/{k}", 0) or 0)
+    return out
 
 
 def _baselines(cfg: DictConfig, evaluation: Evaluation, run_dir: Path) -> dict[str, float]:
