@@ -293,6 +293,9 @@ class LLMAloneEvaluation:
             nxt = td.get("next")
             fl["positions"].append(nxt.get(("state", "position")).reshape(b, 2).clone())
             fl["length"] += (~fl["finished"]).long()
+            going = ~fl["finished"]  # the data each GE holds as a row's episode ends: its picture's
+            fl.setdefault("ge_left", nxt.get(("state", "ge_remaining")).clone())[going] = \
+                nxt.get(("state", "ge_remaining"))[going]
             fl["finished"] = fl["finished"] | tracker.update(nxt)
             fl["step"] += 1
             td = step_mdp(td, keep_other=True)  # finished rows go on without a reset: first episodes only
@@ -312,6 +315,7 @@ class LLMAloneEvaluation:
         state["records"].append({key: v.cpu() for key, v in records.items()})
         state["trajectories"].append([traj[: int(n) + 1, i] for i, n in enumerate(fl["length"].tolist())])
         state["done"].append(k)
+        state.setdefault("ge_left", {})[k] = fl.get("ge_left")  # by chunk: files of the first formats lack it
         state["in_flight"] = None
         state["wall_s"] = wall()
         state["policy"] = self._policy_state()
@@ -340,12 +344,13 @@ class LLMAloneEvaluation:
         in_flight = state["in_flight"]
         calls_in_flight = sum(int(st["in_flight"]["llm_calls"].sum()) for st in states if st["in_flight"] is not None)
         trajectories = [(k * self.chunk + i, t) for k in order for i, t in enumerate(chunks[k][1])]
+        ge_left = {k: v for st in states for k, v in (st.get("ge_left") or {}).items() if v is not None}
         return {"metrics": agg, "complete": len(order) >= self.n_chunks,
                 "episodes_scored": int(agg["n_episodes"]), "episodes_total": len(self.scenarios),
                 "chunks_done": len(order), "chunks": self.n_chunks,
                 "in_flight_step": None if in_flight is None else int(in_flight["step"]),
                 "cost": self.cost(states, calls_scored, calls_in_flight), "records": records,
-                "trajectories": trajectories, "invocations": int(state["invocations"]),
+                "trajectories": trajectories, "ge_left": ge_left, "invocations": int(state["invocations"]),
                 "shard": self.shard, "shards": self.shards, "progress_files": len(states)}
 
     def cost(self, states: list[dict[str, Any]], calls_scored: int, calls_in_flight: int) -> dict[str, float]:
@@ -381,5 +386,7 @@ class LLMAloneEvaluation:
         at = {int(r): j for j, r in enumerate(records["row"].tolist())} if records else {}
         for i, traj in result["trajectories"][: self.n_plots]:
             outcome = f": {episode_outcome({k: v[at[i]] for k, v in records.items()})}" if i in at else ""
+            left = result.get("ge_left", {}).get(i // self.chunk)
             draw_scenario(self.scenarios[i], [traj], path=self.out / f"trajectory_{i}.png",
-                          title=f"{title} scenario {i}{outcome}".strip(), cfg=self.env_cfg)
+                          title=f"{title} scenario {i}{outcome}".strip(), cfg=self.env_cfg,
+                          ge_left=None if left is None else left[i % self.chunk])
