@@ -35,8 +35,10 @@ run: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/python -m uavlae.demo
 
+# Both cores (pytest-xdist; the tests that share a costly fixture, such as the wheel, share a
+# worker), and the 15 slowest tests printed at the end, where to look first when it grows
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow" --timeout=900
+	$(BIN)/python -m pytest -q -m "not slow" --timeout=900 -n 2 --dist loadgroup --durations=15
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow --timeout=3600

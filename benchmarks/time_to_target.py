@@ -149,9 +149,9 @@ def run_ours(a: argparse.Namespace, eval_set: Path, run_dir: Path) -> dict:
     frames = {"n": 0}
     orig_run, orig_make_learner = ev.Evaluator.run, tr.make_learner
 
-    def timed_run(self, policy, out_dir=None, *, title=""):
+    def timed_run(self, policy, out_dir=None, **kw):
         t = time.perf_counter()
-        agg = orig_run(self, policy, out_dir, title=title)
+        agg = orig_run(self, policy, out_dir, **kw)
         frames["n"] = int(Path(out_dir).name.split("_")[1])  # <run_dir>/eval/frames_000008192
         eval_s = time.perf_counter() - t
         if a.keep_actors and hasattr(policy, "state_dict"):  # beside episodes.csv, outside the clock

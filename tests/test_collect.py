@@ -194,14 +194,6 @@ def test_fast_sample_equals_torchrl_sample():
 # ---------------------------------------------------------------------------- real LLM
 
 
-@pytest.fixture(scope="module")
-def llm_server():
-    from uavlae.llm.server import local_server
-
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
-
-
 @pytest.mark.integration
 @pytest.mark.timeout(300)
 def test_llm_override_with_the_real_local_server(llm_server, tmp_path):

@@ -117,6 +117,28 @@ def test_a_stop_asked_again_later_ends_at_once():
         signal.signal(signal.SIGTERM, original)
 
 
+def test_a_wait_without_steps_ends_at_once_on_a_stop():
+    """Inside interruptible() (a local LLM server starting) the first SIGTERM raises StopRequested
+    out of the wait itself; outside it, the stop is only noted, and check() raises it at the next
+    step boundary."""
+    from uavlae.lifecycle import GracefulStop, StopRequested
+
+    with GracefulStop() as stop:
+        t0 = time.monotonic()
+        with pytest.raises(StopRequested), stop.interruptible():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(30)  # the wait: cut short, not slept out
+        assert time.monotonic() - t0 < 5 and stop.signum == signal.SIGTERM
+        with pytest.raises(StopRequested):
+            stop.interruptible().__enter__()  # asked before the wait begins: it does not begin
+    with GracefulStop() as stop:
+        stop.check()  # nothing asked: nothing raised
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.requested  # noted, the work goes on to its step boundary
+        with pytest.raises(StopRequested):
+            stop.check()
+
+
 def test_resume_refuses_a_conflict_and_honours_an_extension(tmp_path):
     from uavlae.train import run
 

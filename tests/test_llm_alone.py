@@ -132,6 +132,19 @@ def test_one_chunk_flies_what_the_evaluator_flies(tmp_path):
     assert lengths == [80, 77, 80] and res["records"]["landed"].tolist() == [False, True, False]
     assert res["records"]["llm_calls"].tolist() == lengths
     assert res["cost"]["calls"] == int(res["records"]["length"].sum()) == res["cost"]["calls_scored"]
+    # the pictures' GEs at the data they held when each episode ended: what left them is what it
+    # collected, and the evaluator's rollout keeps the same
+    from uavlae.envs.metrics import rollout_metrics
+    from uavlae.evaluate import EpisodeEnds
+
+    left = res["ge_left"][0]
+    for i, sc in enumerate(scen):
+        got = sum(sc.ge_data) - float(left[i].sum())
+        assert got == pytest.approx(float(res["records"]["data_collected"][i]), abs=1e-4)
+    ev, ends = Evaluator(cfg, scen, seed=3, n_plots=0), EpisodeEnds()
+    ev.env.set_seed(3)
+    rollout_metrics(ev.env, _heuristic_always(cfg), cfg=cfg, on_step=ends)
+    assert torch.equal(ends.ge_left, left)
     # a bare controller (no override, its memory kept through cache_state) flies the same
     from uavlae.llm_alone import LLMAloneEvaluation
     from uavlae.policies.greedy import GreedyPolicy
@@ -273,14 +286,6 @@ def test_a_progress_file_of_the_first_format_continues(tmp_path):
 
 
 # ---------------------------------------------------------------------------- the real local server
-
-
-@pytest.fixture(scope="module")
-def local_llm():
-    from uavlae.llm.server import local_server
-
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
 
 
 def _cfg(*overrides: str):

@@ -621,7 +621,8 @@ def test_a_training_run_against_an_endpoint_that_is_down_stops_with_one_message(
             "trainer.baselines=false", "logger.wandb.mode=disabled", "advisor.d_th=1000.0",
             "llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
             "llm.cache_mode=off", "llm.row_deadline_s=1.0", "llm.max_retries=2", "llm.backoff_base_s=0.01",
-            "llm.backoff_max_s=0.05", "llm.max_failed_rows=3", "llm.max_concurrency=1"]
+            "llm.backoff_max_s=0.05", "llm.max_failed_rows=3", "llm.max_concurrency=1",
+            "llm.preflight=false"]  # an endpoint that goes down during the run (the preflight: the test below)
     try:
         t0 = time.monotonic()
         proc = subprocess.run([sys.executable, "-m", "uavlae.train", *args], cwd=root, capture_output=True,
@@ -637,6 +638,32 @@ def test_a_training_run_against_an_endpoint_that_is_down_stops_with_one_message(
     assert not (tmp_path / "run" / "final_metrics.json").exists()  # it did not go on as plain SAC
     # start-up (imports, env, networks) takes most of it; the LLM's part is 3 s at most when it hangs
     assert took < 60
+
+
+@pytest.mark.parametrize("kind", ["refused", "error500"])
+def test_an_endpoint_that_is_down_before_the_run_stops_it_before_any_work(tmp_path, kind):
+    """The same command with the preflight on (every preset's default): the one question before
+    the run meets the fault, and the command ends with one line naming the URL, exit status 2,
+    before a frame is trained and without leaving its run folder (it held nothing of its own)."""
+    ep = Endpoint(kind)
+    root = Path(__file__).resolve().parents[1]
+    run_dir = tmp_path / "run"
+    args = ["+exp=sac_llm", f"run_dir={run_dir}", "trainer.total_frames=64", "trainer.env_batch_size=2",
+            "trainer.frames_per_batch=8", "trainer.init_random_frames=0", "logger.wandb.mode=disabled",
+            "llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
+            "llm.cache_mode=off", "llm.row_deadline_s=1.0", "llm.max_retries=1", "llm.backoff_base_s=0.01",
+            "llm.backoff_max_s=0.05"]
+    try:
+        proc = subprocess.run([sys.executable, "-m", "uavlae.train", *args], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120, env={**__import__("os").environ, "UAVLAE_TEST_KEY": KEY})
+    finally:
+        ep.close()
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert proc.stderr.startswith(f"error: LLM endpoint {ep.url}/chat/completions (key from $UAVLAE_TEST_KEY) did "
+                                  "not answer a first question before the run: "), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr and KEY not in proc.stderr
+    assert ep.hits == {"refused": 0, "error500": 2}[kind]  # one question and its one retry
+    assert not run_dir.exists()
 
 
 def test_a_row_deadline_bounds_retries_whatever_their_number(caplog):
@@ -737,3 +764,79 @@ def test_the_command_line_with_a_key_is_refused_before_anything_is_written(tmp_p
 def test_a_removed_setting_names_its_heir():
     with pytest.raises(ValueError, match="llm.fallback was removed: advisor.fallback is the one fallback setting"):
         make_llm_config("local", fallback="policy")
+
+
+# -- the preflight: one question before the run ------------------------------------------------
+class _Answers:
+    """A real local endpoint answering every chat completion with ``text`` (not an action)."""
+
+    def __init__(self, text: str):
+        import http.server
+
+        outer, self.hits, self.auth = self, 0, []
+
+        class Answer(http.server.BaseHTTPRequestHandler):
+            def do_POST(self):  # noqa: N802
+                outer.hits += 1
+                outer.auth.append(self.headers.get("authorization"))
+                self.rfile.read(int(self.headers.get("content-length", 0)))
+                body = json.dumps(completion(text)).encode()
+                self.send_response(200)
+                self.send_header("content-type", "application/json")
+                self.send_header("content-length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *args):
+                pass
+
+        self.srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Answer)
+        threading.Thread(target=self.srv.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.srv.server_address[1]}/v1"
+
+    def close(self):
+        self.srv.shutdown()
+        self.srv.server_close()
+
+
+def _llm_cfg(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    from uavlae.factories import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=["+exp=sac_llm", *overrides])
+
+
+def test_the_preflight_asks_once_and_any_chat_completion_passes(tmp_path, monkeypatch):
+    """A model that answers, even with no action in it, is a model that answers: the run may go
+    on (its extractor and advisor.fallback handle the answers). One request, with the key when
+    the variable holds one, nothing cached."""
+    from uavlae.envs import make_env_config
+    from uavlae.preflight import check_llm
+
+    ep = _Answers("I cannot fly drones.")
+    monkeypatch.setenv("UAVLAE_TEST_KEY", KEY)
+    try:
+        check_llm(_llm_cfg("llm=openai_compatible", f"llm.base_url={ep.url}", "llm.api_key_env=UAVLAE_TEST_KEY",
+                           f"llm.cache_path={tmp_path / 'c.sqlite'}"), make_env_config())
+    finally:
+        ep.close()
+    assert ep.hits == 1 and ep.auth == [f"Bearer {KEY}"] and not (tmp_path / "c.sqlite").exists()
+
+
+def test_a_required_key_that_is_unset_stops_before_any_request(monkeypatch):
+    from uavlae.envs import make_env_config
+    from uavlae.preflight import check_llm
+
+    ep = _Answers(json.dumps(GOOD))
+    monkeypatch.delenv("DEEPSEEK_API_KEY", raising=False)
+    try:
+        with pytest.raises(EndpointError, match=r"^llm.api_key_env: the environment variable DEEPSEEK_API_KEY is not "
+                                                r"set \(or empty\)"):
+            check_llm(_llm_cfg("llm=deepseek", f"llm.base_url={ep.url}"), make_env_config())
+        # replayed from the cache alone, no endpoint is asked: nothing to check
+        check_llm(_llm_cfg("llm=deepseek", f"llm.base_url={ep.url}", "llm.cache_mode=replay_only"), make_env_config())
+    finally:
+        ep.close()
+    assert ep.hits == 0

@@ -22,15 +22,6 @@ LIM = WorldLimits(x_size=500.0, y_size=500.0, v_max=10.0, v_limit=5.0, perceptio
 SHORT = dict(max_tokens=96, reasoning_max_chars=40)  # the tests check plumbing, not eloquence
 
 
-@pytest.fixture(scope="session")
-def llm_server():
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
-    # the context manager stopped exactly its child
-    with pytest.raises(ProcessLookupError):
-        os.kill(srv.pid, 0)
-
-
 def test_server_is_healthy_and_local(llm_server):
     assert llm_server.base_url.startswith("http://127.0.0.1:")
     assert httpx.get(llm_server.base_url.removesuffix("/v1") + "/health", timeout=5).status_code == 200

@@ -19,7 +19,8 @@ import pytest
 
 from uavlae.factories import REPO_ROOT
 
-pytestmark = pytest.mark.timeout(600)
+# one worker builds and installs the wheel once for every test of this file (make test: --dist loadgroup)
+pytestmark = [pytest.mark.timeout(600), pytest.mark.xdist_group("wheel")]
 
 PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())
 VERSION = PYPROJECT["project"]["version"]

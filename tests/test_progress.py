@@ -77,4 +77,49 @@ def test_a_training_run_reports_within_its_batches(tmp_path, caplog):
         final = _run("sac", tmp_path / "r", "trainer.progress_every_s=0.000001", "trainer.eval_every_frames=0")
     frames = [int(m.split(": ", 1)[1].split(" / ")[0].replace(",", "")) for m in caplog.messages if "sac seed0: " in m]
     assert frames[:9] == [4, 8, 12, 16, 20, 24, 28, 32, 36] and frames[-1] == final["frames"] == 128
-    assert "last evaluation at 128: DCR" in caplog.messages[-1]
+    training = [m for m in caplog.messages if "sac seed0: " in m]
+    assert "last evaluation at 128: DCR" in training[-1]
+    # the evaluations after training report too: the actor's, then each baseline's, by its steps
+    assert any(m.startswith("sac @ 128 frames: step 1, ") for m in caplog.messages)
+    assert caplog.messages[-1].startswith("random: step ") and "of 2 episodes done" in caplog.messages[-1]
+
+
+def test_the_first_line_comes_first_s_after_the_start_then_every_every_s(caplog):
+    clock = Clock()
+    p = Progress(1000, name="r", bar=False, every_s=60, first_s=10, clock=clock)
+    seen = []
+    with caplog.at_level(logging.INFO, logger="uavlae.progress"):
+        for t in (5, 10, 30, 69, 70, 131):  # seconds since the start: lines at 10, 70 and 131
+            clock.t = 100.0 + t
+            p.advance(10)
+            seen.append(len(caplog.messages))
+    assert seen == [0, 1, 1, 1, 2, 3]
+    assert Progress(10, bar=False, every_s=5, first_s=10, clock=clock).next_line == clock.t + 5  # never after every_s
+
+
+def test_an_evaluation_reports_its_episodes_and_ends_at_a_stop(caplog):
+    import os
+    import signal
+
+    import pytest
+    import torch
+
+    from uavlae.lifecycle import GracefulStop, StopRequested
+    from uavlae.progress import EpisodeProgress
+
+    clock = Clock()
+    asked = {"n": 3}
+    with GracefulStop() as stop, caplog.at_level(logging.INFO, logger="uavlae.progress"):
+        ev = EpisodeProgress("sac with its advisor", 4, every_s=60, first_s=0, stop=stop, clock=clock,
+                             extra=lambda: f"advisor asked for {asked['n']} rows of 64")
+        clock.t += 95
+        ev(12, torch.tensor([True, False, True, False]))
+        assert caplog.messages == ["sac with its advisor: step 12, 2 of 4 episodes done, 1m35s; "
+                                   "advisor asked for 3 rows of 64"]
+        clock.t += 30
+        ev(13, torch.tensor([True, True, True, False]))  # within the interval: no line
+        assert len(caplog.messages) == 1
+        os.kill(os.getpid(), signal.SIGTERM)  # the stop, as a scheduler sends it
+        with pytest.raises(StopRequested) as err:
+            ev(14, torch.tensor([True, True, True, False]))
+    assert err.value.signum == signal.SIGTERM

@@ -199,6 +199,12 @@ def test_evaluate_export_and_fly(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert sorted(p.name for p in cwd.iterdir()) == ["a.pt2"]
     torch.testing.assert_close(load_actor(cwd / "a.pt2")[0](td["observation"]), expected)
+    # uavlae.evaluate's CLI prints its table once, under a line that says what it is
+    cli = [sys.executable, "-m", "uavlae.evaluate", f"checkpoint={run_dir}", "trainer.eval_max_steps=10",
+           f"experiment.eval_dir={tmp_path / 'ev'}", "logger.wandb.mode=disabled"]
+    res = subprocess.run(cli, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("DCR |") == 1 and "The paper metrics (2 episodes, one per scenario):\n" in res.stdout
 
 
 @pytest.mark.parametrize("overrides", [["+exp=crossq"], ["+exp=sac", "algo=sac_ln"]], ids=["crossq", "sac_ln"])
@@ -318,14 +324,6 @@ LLM_TINY = [
     "trainer.progress_bar=false", "logger.wandb.mode=disabled",
     "llm.max_tokens=96", "llm.reasoning_max_chars=40",
 ]
-
-
-@pytest.fixture(scope="module")
-def local_llm():
-    from uavlae.llm.server import local_server
-
-    with local_server(n_threads=1, n_parallel=1) as srv:
-        yield srv
 
 
 @pytest.mark.integration

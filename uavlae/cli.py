@@ -2,9 +2,11 @@
 
 Each is the module's own entry point, as ``python -m uavlae.<module>`` runs it: ``uavlae-train``
 is ``python -m uavlae.train``, ``uavlae-evaluate`` is ``python -m uavlae.evaluate``, and so on.
-The wrappers here exist where a module's ``__main__`` block does more than call ``main`` (the
-commands that only read a run write no Hydra folder into the working directory), or where
-``main`` returns a value that a console script would take for its exit status.
+The wrappers here are what those ``__main__`` blocks run: a command line holding an API key is
+refused before Hydra writes it down, the commands that only read a run write no Hydra folder into
+the working directory, and an error the user can fix ends the command with one line
+(:func:`uavlae.entry.command`), or ``main`` returns a value that a console script would take
+for its exit status.
 ``uavlae-report`` is :func:`uavlae.experiments.report.main` directly: the library never imports
 the experiments layer, not even here.
 """
@@ -14,22 +16,36 @@ from __future__ import annotations
 import sys
 
 
+def train() -> None:
+    """``uavlae-train +exp=NAME [key=value ...]`` (``python -m uavlae.train``)."""
+    from uavlae.entry import command
+    from uavlae.llm.config import refuse_secret_overrides
+    from uavlae.train import main
+
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line into the run folder
+    command(main)
+
+
 def evaluate() -> None:
     """``uavlae-evaluate checkpoint=RUN_DIR [key=value ...]`` (``python -m uavlae.evaluate``)."""
+    from uavlae.entry import command
     from uavlae.evaluate import main
     from uavlae.factories import without_hydra_output
+    from uavlae.llm.config import refuse_secret_overrides
 
+    refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down
     sys.argv = without_hydra_output(sys.argv)
-    main()
+    command(main)
 
 
 def export() -> None:
     """``uavlae-export checkpoint=RUN_DIR out=actor.pt2`` (``python -m uavlae.export``)."""
+    from uavlae.entry import command
     from uavlae.export import main
     from uavlae.factories import without_hydra_output
 
     sys.argv = without_hydra_output(sys.argv)
-    main()
+    command(main)
 
 
 def fly() -> None:

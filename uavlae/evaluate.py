@@ -36,13 +36,19 @@ from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, 
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
 from uavlae.factories import (
     CONF_DIR, log_evaluation, make_controller, make_env, make_learner, make_safety_filter, make_safety_filter_config,
-    run_metadata, without_hydra_output,
+    run_metadata,
 )
+from uavlae.entry import refused_in_job
+from uavlae.errors import ConfigError, InputError
 from uavlae.files import dump_json
-from uavlae.lifecycle import flatten_keys
+from uavlae.lifecycle import GracefulStop, StopRequested, flatten_keys
 from uavlae.llm_alone import LLMAloneEvaluation
 from uavlae.policies.override import OverridePolicy
 from uavlae.policies.safety import FilteredPolicy
+from uavlae.preflight import check_llm, start_llm
+from uavlae.progress import EpisodeProgress
+from uavlae.rules import world_problems
+from uavlae.runlog import route_library_output
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +69,10 @@ def load_or_make_eval_set(env_cfg: EnvConfig, path: str | os.PathLike[str], n: i
             "trainer.sample_eval_set=true to sample one there (trainer.eval_episodes, trainer.eval_seed)"
         )
     if path.is_file():
-        scenarios = load_scenarios(path, env_cfg)
+        try:
+            scenarios = load_scenarios(path, env_cfg)
+        except ValueError as err:  # the file's own fault, named with its path and the scenario
+            raise InputError(str(err)) from None
         if len(scenarios) != n:
             log.info("evaluation set %s has %d scenarios (trainer.eval_episodes=%d): using the file", path, len(scenarios), n)
         return scenarios
@@ -113,26 +122,59 @@ class Evaluator:
             compile_step=compile_step,
         )
 
-    def run(self, policy: Any, out_dir: str | os.PathLike[str] | None = None, *, title: str = "") -> dict[str, float]:
-        """Evaluate ``policy`` (deterministic exploration); write files under ``out_dir``."""
+    def run(self, policy: Any, out_dir: str | os.PathLike[str] | None = None, *, title: str = "",
+            on_step: Any = None) -> dict[str, float]:
+        """Evaluate ``policy`` (deterministic exploration); write files under ``out_dir``.
+        ``on_step``: called after every env step (:func:`rollout_metrics`): progress, a stop."""
         self.env.set_seed(self.seed)
+        ends = EpisodeEnds(on_step)
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            records, agg, trajectories = rollout_metrics(self.env, policy, max_steps=self.max_steps, cfg=self.env_cfg)
+            records, agg, trajectories = rollout_metrics(self.env, policy, max_steps=self.max_steps, cfg=self.env_cfg,
+                                                         on_step=ends)
         if out_dir is not None:
             out = Path(out_dir)
             save_records(records, out / "episodes.csv")
             save_aggregates(agg, out / "metrics.json")
-            self.plot(trajectories, out, title)
+            self.plot(trajectories, out, title, records, ends.ge_left)
         return agg
 
-    def plot(self, trajectories: list[torch.Tensor], out: Path, title: str = "") -> None:
-        from uavlae.envs.render import draw_scenario
+    def plot(self, trajectories: list[torch.Tensor], out: Path, title: str = "",
+             records: Mapping[str, torch.Tensor] | None = None, ge_left: torch.Tensor | None = None) -> None:
+        """The first ``n_plots`` episodes, the title saying how each ended (``records``, the
+        per-episode records, row by row) and each GE drawn with the data it held then
+        (``ge_left``, ``[B, G]``)."""
+        from uavlae.envs.render import draw_scenario, episode_outcome
 
         for i in range(min(self.n_plots, len(trajectories))):
+            outcome = "" if records is None else f": {episode_outcome({k: v[i] for k, v in records.items()})}"
             draw_scenario(
                 self.scenarios[i], [trajectories[i]], path=out / f"trajectory_{i}.png",
-                title=f"{title} scenario {i}".strip(), cfg=self.env_cfg,
+                title=f"{title} scenario {i}{outcome}".strip(), cfg=self.env_cfg,
+                ge_left=None if ge_left is None else ge_left[i],
             )
+
+
+class EpisodeEnds:
+    """A rollout's ``on_step`` that keeps what the pictures need of each episode's end, the data
+    each GE holds when the row's first episode ends (``ge_left``, ``[B, G]``), then calls
+    ``then`` (progress, a stop)."""
+
+    def __init__(self, then: Any = None):
+        self.then = then
+        self.ge_left: torch.Tensor | None = None
+        self._ended: torch.Tensor | None = None
+
+    def __call__(self, step: int, finished: torch.Tensor, next_td: Any) -> None:
+        left = next_td.get(("state", "ge_remaining")).detach().cpu()
+        ended = finished.detach().cpu()
+        if self.ge_left is None:
+            self.ge_left = left.clone()
+        else:  # the rows still flying before this step take its value: the step that ended them included
+            going = ~self._ended
+            self.ge_left[going] = left[going]
+        self._ended = ended.clone()
+        if self.then is not None:
+            self.then(step, finished, next_td)
 
 
 @dataclass
@@ -155,11 +197,25 @@ class Evaluation:
 
     def __init__(self, evaluator: Evaluator, *, chunked: bool = False, chunk: int | None = None,
                  budget: int | None = None, shard: int = 0, shards: int = 1,
-                 fingerprint: Mapping[str, Any] | None = None):
+                 fingerprint: Mapping[str, Any] | None = None, progress_every_s: float = 0.0,
+                 progress_first_s: float | None = None):
         self.evaluator = evaluator
         self.chunked = chunked
         self.chunk, self.budget, self.shard, self.shards = chunk, budget, shard, shards
         self.fingerprint = dict(fingerprint or {})
+        self.progress_every_s, self.progress_first_s = float(progress_every_s), progress_first_s
+        self.stop: Any = None  # the command's GracefulStop, checked at every step (set by the command)
+
+    def watch(self, title: str, policy: Any) -> EpisodeProgress:
+        """A flight's progress lines and its stop (:class:`uavlae.progress.EpisodeProgress`); an
+        override's lines also count the rows it asked of its advisor, against its budget."""
+        extra = None
+        if isinstance(policy, OverridePolicy):
+            def extra() -> str:
+                of = "" if policy.max_calls is None else f" of {policy.max_calls}"
+                return f"advisor asked for {policy.calls_used} rows{of}"
+        return EpisodeProgress(title or "evaluation", len(self.scenarios), every_s=self.progress_every_s,
+                               first_s=self.progress_first_s, stop=self.stop, extra=extra)
 
     @property
     def scenarios(self) -> list[Scenario]:
@@ -171,7 +227,7 @@ class Evaluation:
         if not self.chunked:
             if isinstance(policy, FilteredPolicy):
                 policy.reset()  # this flight's interventions only
-            agg = self.evaluator.run(policy, out_dir, title=title)
+            agg = self.evaluator.run(policy, out_dir, title=title, on_step=self.watch(title, policy))
             if isinstance(policy, FilteredPolicy):  # the pilot's filter: how often and how much it acted
                 return Flight(agg, {f"safety/{k}": v for k, v in policy.stats.snapshot().items()})
             return Flight(agg, policy.counters() if override else {})
@@ -190,7 +246,7 @@ class Evaluation:
         return LLMAloneEvaluation(
             e.env_cfg, e.scenarios, policy, out_dir, seed=e.seed, chunk=self.chunk, max_steps=e.max_steps,
             budget=self.budget, fingerprint=self.fingerprint, n_plots=e.n_plots, device=e.env.device,
-            shard=self.shard, shards=self.shards,
+            shard=self.shard, shards=self.shards, stop=lambda: self.stop is not None and self.stop.requested,
         )
 
 
@@ -203,7 +259,8 @@ def make_evaluation(cfg: DictConfig, env_cfg: EnvConfig, scenarios: list[Scenari
                           n_plots=int(tr.eval_plots), device=cfg.device, compile_step=compile_step)
     chunked = cfg.controller == "llm" if chunked is None else chunked
     return Evaluation(evaluator, chunked=chunked, chunk=tr.eval_chunk, budget=tr.llm_call_budget,
-                      shard=int(tr.eval_shard), shards=int(tr.eval_shards), fingerprint=fingerprint)
+                      shard=int(tr.eval_shard), shards=int(tr.eval_shards), fingerprint=fingerprint,
+                      progress_every_s=float(tr.progress_every_s), progress_first_s=tr.progress_first_s)
 
 
 def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: Any = None,
@@ -248,15 +305,15 @@ def overridden_env(saved_env: Any, overrides: Mapping[str, Any]) -> EnvConfig:
         OmegaConf.update(env, f"{key}.pad", int(node.pad if node.pad is not None else node.max), merge=False)
     for key, value in overrides.items():
         if OmegaConf.select(env, key, default="__missing__") == "__missing__":
-            raise ValueError(f"env override {key}={value!r}: the checkpoint's env has no key {key!r}")
+            raise ConfigError(f"env override {key}={value!r}: the checkpoint's env has no key {key!r}")
         OmegaConf.update(env, key, value, merge=False)
     try:
         out = make_env_config(env)
     except ValueError as err:
-        raise ValueError(f"env overrides {dict(overrides)} on the checkpoint's world: {err}") from None
+        raise ConfigError(f"env overrides {dict(overrides)} on the checkpoint's world: {err}") from None
     obs_before, obs_after = _obs_dim(trained), _obs_dim(out)
     if obs_before != obs_after:
-        raise ValueError(
+        raise ConfigError(
             f"env overrides {dict(overrides)} change the observation from {obs_before} to {obs_after} "
             "columns; the trained actor needs the training padding (keep env.*.pad and the feature flags)"
         )
@@ -309,10 +366,10 @@ def _target(cfg: DictConfig, overrides: Mapping[str, Any]) -> Target:
     ex = cfg.experiment
     if cfg.controller != "learner":
         if not ex.eval_dir:
-            raise ValueError(f"uavlae.evaluate +exp={cfg.name} (a controller) needs experiment.eval_dir=PATH")
+            raise ConfigError(f"uavlae.evaluate +exp={cfg.name} (a controller) needs experiment.eval_dir=PATH")
         return Target(str(cfg.name), str(ex.method), make_env_config(cfg.env), Path(ex.eval_dir))
     if not cfg.checkpoint:
-        raise ValueError("uavlae.evaluate needs checkpoint=PATH (a checkpoint file or a run dir)")
+        raise ConfigError("uavlae.evaluate needs checkpoint=PATH (a checkpoint file or a run dir)")
     state, file = load_checkpoint(cfg.checkpoint, mmap=True)
     saved = OmegaConf.create(state["config"])
     run_dir = run_dir_of(file)
@@ -355,6 +412,10 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     tr = cfg.trainer  # evaluation settings come from this command line (defaults: the trainer's)
     overrides = env_overrides(cfg.env, task_overrides)
     t = _target(cfg, overrides)
+    problems = world_problems(t.env_cfg)
+    if problems:
+        raise ConfigError("\n".join(problems))
+    check_llm(cfg, t.env_cfg)
     t.safety = safety_of(cfg, t.saved, task_overrides)
     filtered = t.state is not None and make_safety_filter_config(t.safety).mode != "off"
     spec = json.loads(json.dumps({
@@ -376,13 +437,18 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
     t0 = time.perf_counter()
     policy = _flyer(cfg, t, evaluation)
     try:
-        flight = evaluation.fly(policy, t.out, title=f"{t.name} @ {t.frames} frames")
+        with GracefulStop() as stop:  # a stop ends the flight at its current step; nothing is written
+            evaluation.stop = stop
+            start_llm(policy, stop)
+            flight = evaluation.fly(policy, t.out, title=f"{t.name} @ {t.frames} frames")
     finally:
         if isinstance(policy, OverridePolicy):
             policy.close()  # the LLM's client, and the local server it started
     _record(cfg, t, spec, set_file, len(scenarios), flight, time.perf_counter() - t0)
+    if stop.requested:  # the LLM alone paused at its saved step: recorded as paused, then the stop
+        raise StopRequested(int(stop.signum))  # type: ignore[arg-type]
     log_evaluation(cfg, t.out)
-    log.info("%s\n%s", t.out, format_metrics(flight.metrics))
+    log.info("%s: %d episodes flown, written to %s", t.name, len(scenarios), t.out)
     return flight.metrics
 
 
@@ -419,13 +485,23 @@ def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     torch.set_num_threads(int(cfg.threads))
-    agg = evaluate_checkpoint(cfg, list(HydraConfig.get().overrides.task))
+    route_library_output(bool(OmegaConf.select(cfg, "logger.library_output", default=False)))
+    try:
+        with refused_in_job():
+            agg = evaluate_checkpoint(cfg, list(HydraConfig.get().overrides.task))
+    except StopRequested as s:
+        print(f"stopped by signal {s.signum}: run the same command again (the LLM alone goes on from its saved "
+              "progress; any other evaluation starts over)", file=sys.stderr)
+        sys.exit(128 + s.signum)
+    print(f"The paper metrics ({int(agg.get('n_episodes', 0))} episodes, one per scenario):")
     print(format_metrics(agg, PAPER_METRICS))
 
 
 if __name__ == "__main__":
+    from uavlae.entry import command
+    from uavlae.factories import without_hydra_output
     from uavlae.llm.config import refuse_secret_overrides
 
     refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down
     sys.argv = without_hydra_output(sys.argv)
-    main()
+    command(main)

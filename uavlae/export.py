@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +24,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from uavlae.errors import ConfigError
 from uavlae.files import atomic_write
-from uavlae.factories import package_versions, without_hydra_output
+from uavlae.factories import package_versions
 
 
 class DeterministicActor(nn.Module):
@@ -165,7 +165,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
         return export_actor(learner, env.action_spec, out, meta)
     meta["safety_filter"] = make_safety_filter_config(safety_cfg).model_dump(mode="json")
     if env_cfg.ego_features and env_cfg.reward.progress_metric == "geodesic":
-        raise ValueError("a pilot reads only what the DCU perceives: env.ego_features with "
+        raise ConfigError("a pilot reads only what the DCU perceives: env.ego_features with "
                          "reward.progress_metric=geodesic reads a planner's distance field (a training-only aid)")
     return export_pilot(learner, env.action_spec, env_cfg, safety, out, meta)
 
@@ -174,13 +174,21 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    if not cfg.checkpoint or not cfg.get("out"):
-        raise SystemExit("usage: python -m uavlae.export checkpoint=RUN_DIR_OR_FILE out=actor.pt2 "
-                         "[safety_filter.mode=deploy]")
-    named = any(o.split("=", 1)[0].lstrip("+~").startswith("safety_filter") for o in HydraConfig.get().overrides.task)
-    print(export_checkpoint(cfg.checkpoint, cfg.out, cfg.safety_filter if named else None))
+    from uavlae.entry import refused_in_job
+
+    with refused_in_job():
+        if not cfg.checkpoint or not cfg.get("out"):
+            raise ConfigError("checkpoint= and out= are both needed; usage: python -m uavlae.export "
+                              "checkpoint=RUN_DIR_OR_FILE out=actor.pt2 [safety_filter.mode=deploy]")
+        named = any(o.split("=", 1)[0].lstrip("+~").startswith("safety_filter") for o in HydraConfig.get().overrides.task)
+        print(export_checkpoint(cfg.checkpoint, cfg.out, cfg.safety_filter if named else None))
 
 
 if __name__ == "__main__":
+    import sys
+
+    from uavlae.entry import command
+    from uavlae.factories import without_hydra_output
+
     sys.argv = without_hydra_output(sys.argv)
-    main()
+    command(main)

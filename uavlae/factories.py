@@ -25,6 +25,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from uavlae.algos import OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
+from uavlae.errors import ConfigError
 from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
 from uavlae.policies.safety import make_safety_filter, make_safety_filter_config  # noqa: F401  (a factory of its own group)
 from uavlae.policies.student import StudentConfig
@@ -53,7 +54,7 @@ def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
     try:
         return model.model_validate(_container(cfg))
     except ValidationError as e:
-        raise ValueError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
+        raise ConfigError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
 
 
 # ---------------------------------------------------------------------------- configs
@@ -82,12 +83,13 @@ class TrainerConfig(StrictModel):
     keep_checkpoints: int = Field(ge=1, le=2)
     progress_bar: bool
     progress_every_s: float = Field(default=60.0, ge=0)  # a progress line this often where no bar shows (0: none)
+    progress_first_s: float = Field(default=10.0, ge=0)  # the first line this soon (never later than progress_every_s)
     log_every_batches: int = Field(ge=1)
     compile_env: bool = False  # UAVEnv(compile_step=True) for the training and evaluation envs
     overlap_advice: bool = True  # run a step's gradient steps while its advice is in flight
     baselines: bool = True  # evaluate the heuristic and a uniform-random policy on the evaluation set at the end
     eval_with_advisor: bool = True  # advised runs: at the end also fly the actor with its advisor (full trigger)
-    eval_advisor_max_calls: int | None = Field(default=None, ge=0)  # rows that evaluation may ask (None: no budget)
+    eval_advisor_max_calls: int | None = Field(default=64, ge=0)  # rows that evaluation may ask (None: no budget)
     eval_chunk: int | None = Field(default=None, ge=1)  # controller=llm: scenarios flown together (None: all)
     llm_call_budget: int | None = Field(default=None, ge=0)  # controller=llm: LLM decisions this invocation may ask (0: only score)
     eval_shards: int = Field(default=1, ge=1)  # controller=llm: processes that fly the evaluation side by side
@@ -150,6 +152,7 @@ class LoggerConfig(StrictModel):
 
     csv: bool
     wandb: WandbConfig
+    library_output: bool = False  # wandb's and torchrl's own messages on the terminal too (else the run's log only)
 
 
 class ExperimentConfig(StrictModel):

@@ -7,6 +7,7 @@ Also where a training run puts its evaluations, for the writer and its readers a
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import tempfile
@@ -14,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["ABSOLUTE_PATH", "atomic_write", "dump_json", "portable", "train_eval_dir"]
+__all__ = ["ABSOLUTE_PATH", "atomic_write", "dump_json", "finite", "portable", "train_eval_dir"]
 
 
 def _file_mode() -> int:
@@ -55,9 +56,24 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any]
 
 
 def dump_json(path: str | os.PathLike[str], obj: Any, *, indent: int | None = 1, allow_nan: bool = True) -> Path:
-    """``obj`` as JSON in ``path``, atomically (objects JSON does not know are written as ``str``)."""
-    text = json.dumps(obj, indent=indent, allow_nan=allow_nan, default=str)
+    """``obj`` as strict JSON in ``path``, atomically (objects JSON does not know are written as
+    ``str``). A NaN or an infinity, which JSON has no word for, is written as ``null`` (what no
+    value means: a metric over no episode, a cost without a price); ``allow_nan=False`` makes it
+    an error instead, for files whose numbers must all be finite."""
+    text = json.dumps(finite(obj) if allow_nan else obj, indent=indent, allow_nan=False, default=str)
     return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` with every NaN and infinity (in dicts, lists and tuples, at any depth) as None,
+    so that ``json.dumps(finite(obj), allow_nan=False)`` is strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
 
 
 # an absolute path: a "/" that starts a token (the text's start, or after a space, "=", ":", a

@@ -14,18 +14,22 @@ holds, and a stop on a signal that leaves a checkpoint.
   checkpoint; a new run into a folder that holds a run is an error.
 - :class:`GracefulStop`: SIGTERM (what Slurm sends before a time limit or a preemption) and
   SIGINT end the current batch; the loop then writes a checkpoint and raises :class:`RunStopped`,
-  whose message says how to resume.
+  whose message says how to resume. It covers every phase of a command, not only training: an
+  evaluation (the baselines and the actor with its advisor among them) checks it at every episode
+  step (:meth:`GracefulStop.check` raises :class:`StopRequested`), and a wait that has no steps,
+  such as a local LLM server starting, is cut short at once (:meth:`GracefulStop.interruptible`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
 import shutil
 import signal
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,19 +37,22 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from uavlae.checkpoint import LAST, PREV, checkpoint_dir, load_checkpoint, run_dir_of
+from uavlae.errors import ConfigError
 
 __all__ = [
-    "GracefulStop", "Plan", "RESUMABLE_KEYS", "RunFolder", "RunFolderBusy", "RunStopped", "config_differences",
-    "flatten_keys", "plan",
+    "GracefulStop", "Plan", "RESUMABLE_KEYS", "RunFolder", "RunFolderBusy", "RunStopped", "StopRequested",
+    "config_differences", "flatten_keys", "plan",
 ]
 
 # May differ between a run's recorded config and the command that continues it. Runtime settings
 # (how it runs, not what it computes) are always taken from the new command; the budgets only
 # when the command sets them (extending total_frames continues training to the new budget);
-# the LLM alone's call budget and shards are how one evaluation is split into invocations.
-RUNTIME_KEYS = ("threads", "device", "trainer.progress_bar", "trainer.progress_every_s", "logger.wandb.mode")
+# the LLM alone's call budget and shards are how one evaluation is split into invocations, and the
+# with-advisor evaluation's call budget is what a finished training may spend on that one evaluation.
+RUNTIME_KEYS = ("threads", "device", "trainer.progress_bar", "trainer.progress_every_s", "trainer.progress_first_s",
+                "logger.wandb.mode", "logger.library_output")
 BUDGET_KEYS = ("trainer.total_frames", "trainer.total_episodes", "trainer.llm_call_budget", "trainer.eval_shard",
-               "trainer.eval_shards")
+               "trainer.eval_shards", "trainer.eval_advisor_max_calls")
 RESUMABLE_KEYS = RUNTIME_KEYS + BUDGET_KEYS
 # settings removed from the code, which a run saved before holds: they had no effect (llm.fallback
 # was logged, never applied: advisor.fallback acted), so a recorded config is read without them
@@ -54,11 +61,20 @@ REMOVED_KEYS = ("llm.fallback",)
 BOOKKEEPING_KEYS = ("resume", "experiment.reuse", "run_dir", "checkpoint", "out")
 # what a rerun after a kill before the first checkpoint removes: everything the run wrote
 RUN_OUTPUTS = ("config.json", "config.yaml", "meta.json", "summary.json", "final_metrics.json", "eval_set.json",
-               "logs", "eval", "checkpoints", "wandb", ".hydra", "train.log")
+               "logs", "eval", "checkpoints", "wandb", ".hydra", "train.log", "error.txt")
 
 
 class RunFolderBusy(RuntimeError):
     """Another live process owns the run folder."""
+
+
+class StopRequested(Exception):
+    """A stop (SIGTERM, SIGINT) reached a phase between training batches (an evaluation, a server
+    start); the command turns it into :class:`RunStopped` once what must be saved is."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"stopped by signal {signum}")
+        self.signum = signum
 
 
 class RunStopped(RuntimeError):
@@ -248,14 +264,14 @@ def plan(cfg: DictConfig, changed_keys: Sequence[str] | None = None) -> Plan:
     if not saved.is_file():
         return Plan("new", cfg)
     if not cfg.experiment.reuse:
-        raise ValueError(
+        raise ConfigError(
             f"{run_dir} holds a run already: continue it with resume={run_dir}, keep it as it is with "
             "experiment.reuse=true, or choose another run_dir"
         )
     recorded = json.loads(saved.read_text())
     conflicts = _conflicts(want, recorded, None)
     if conflicts:
-        raise ValueError(f"{run_dir} holds a run of another config; remove it or set experiment.root elsewhere. "
+        raise ConfigError(f"{run_dir} holds a run of another config; remove it or set experiment.root elsewhere. "
                          "Differences: " + "; ".join(conflicts))
     merged = _carry_over(recorded, want, BUDGET_KEYS)
     final = _finished(run_dir, merged)
@@ -275,7 +291,7 @@ def _plan_resume(cfg: DictConfig, changed_keys: Sequence[str] | None) -> Plan:
     keys = None if changed_keys is None else [k for k in changed_keys if not _under(k, BOOKKEEPING_KEYS)]
     conflicts = _conflicts(want, recorded, keys)
     if conflicts:
-        raise ValueError(f"resume={cfg.resume}: the command line conflicts with the recorded run (only "
+        raise ConfigError(f"resume={cfg.resume}: the command line conflicts with the recorded run (only "
                          f"{', '.join(RESUMABLE_KEYS)} may change on resume): " + "; ".join(conflicts))
     asked = [k for k in BUDGET_KEYS if keys is None or k in keys]
     merged = _carry_over(recorded, want, asked)
@@ -314,10 +330,13 @@ class GracefulStop:
         self._previous: dict[int, Any] = {}
         self._clock = clock
         self._first_at = 0.0
+        self._raise_at_once = False  # inside interruptible(): the handler raises StopRequested
 
     def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is None:
             self.signum, self._first_at = signum, self._clock()
+            if self._raise_at_once:
+                raise StopRequested(signum)
             return
         if signum == self.signum and self._clock() - self._first_at < self.SAME_STOP_S:
             return  # the same stop, delivered again
@@ -341,3 +360,20 @@ class GracefulStop:
     @property
     def requested(self) -> bool:
         return self.signum is not None
+
+    def check(self) -> None:
+        """Raise :class:`StopRequested` if a stop was asked (a step boundary of an evaluation)."""
+        if self.signum is not None:
+            raise StopRequested(self.signum)
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[GracefulStop]:
+        """A wait with no step to end at (a local LLM server starting): a stop asked before or
+        during the block raises :class:`StopRequested` at once, out of the wait itself. Only for
+        work that is thrown away when cut short (the server is stopped on the way out)."""
+        self.check()
+        self._raise_at_once = True
+        try:
+            yield self
+        finally:
+            self._raise_at_once = False

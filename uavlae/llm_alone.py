@@ -57,6 +57,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from uavlae.envs import UAVEnv, make_env_config
 from uavlae.envs.metrics import EpisodeTracker, aggregate, concat_records, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario
+from uavlae.errors import InputError
 from uavlae.files import atomic_write
 from uavlae.lifecycle import config_differences
 from uavlae.policies.override import FALLBACK
@@ -96,6 +97,8 @@ class LLMAloneEvaluation:
         n_plots: trajectories drawn at the end.
         device: where the env runs.
         shard, shards: this process flies the chunks ``k`` with ``k % shards == shard``.
+        stop: called before every step; True pauses the flight there as a spent budget does
+            (SIGTERM, SIGINT: the same command continues).
     """
 
     def __init__(
@@ -114,6 +117,7 @@ class LLMAloneEvaluation:
         device: str | torch.device = "cpu",
         shard: int = 0,
         shards: int = 1,
+        stop: Any = None,
     ):
         self.env_cfg = make_env_config(env_cfg)
         self.scenarios = list(scenarios)
@@ -137,6 +141,7 @@ class LLMAloneEvaluation:
         self.device = torch.device(device)
         self.n_chunks = -(-len(self.scenarios) // self.chunk)
         self.shard, self.shards = int(shard), int(shards)
+        self.stop = stop
         if self.shards < 1 or not 0 <= self.shard < self.shards:
             raise ValueError(f"trainer.eval_shard={shard} must be in [0, trainer.eval_shards={shards})")
         self.own_chunks = [k for k in range(self.n_chunks) if k % self.shards == self.shard]
@@ -151,13 +156,13 @@ class LLMAloneEvaluation:
         """A progress file, checked against this run's config and upgraded to the current format."""
         state = torch.load(path, map_location="cpu", weights_only=False)
         if state.get("version") not in (1, FORMAT_VERSION):
-            raise ValueError(f"{path}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
+            raise InputError(f"{path}: progress format {state.get('version')}, expected {FORMAT_VERSION}")
         if state["fingerprint"] != self.fingerprint or state["chunk"] != self.chunk:
             # settings the file lacks were added to the code after it was written: no difference
             changed, _ = config_differences({**self.fingerprint, "eval_chunk": self.chunk},
                                             {**state["fingerprint"], "eval_chunk": state["chunk"]})
             if changed:
-                raise ValueError(
+                raise InputError(
                     f"{path} holds the progress of another config (differs in {changed[:8]}); "
                     "remove it or pick another run_dir"
                 )
@@ -274,6 +279,9 @@ class LLMAloneEvaluation:
                 log.info("call budget of %d spent: chunk %d/%d paused at step %d", self.budget, k + 1, self.n_chunks,
                          fl["step"])
                 return False
+            if self.stop is not None and self.stop():  # a stop pauses as the budget does: at this saved step
+                log.info("stopped: chunk %d/%d paused at step %d", k + 1, self.n_chunks, fl["step"])
+                return False
             if hasattr(self.policy, "row_mask"):  # the rows whose episode ended are not asked
                 self.policy.row_mask = ~fl["finished"]
             td = self.policy(td)  # the whole chunk: the actor's per-row memory stays aligned
@@ -285,6 +293,9 @@ class LLMAloneEvaluation:
             nxt = td.get("next")
             fl["positions"].append(nxt.get(("state", "position")).reshape(b, 2).clone())
             fl["length"] += (~fl["finished"]).long()
+            going = ~fl["finished"]  # the data each GE holds as a row's episode ends: its picture's
+            fl.setdefault("ge_left", nxt.get(("state", "ge_remaining")).clone())[going] = \
+                nxt.get(("state", "ge_remaining"))[going]
             fl["finished"] = fl["finished"] | tracker.update(nxt)
             fl["step"] += 1
             td = step_mdp(td, keep_other=True)  # finished rows go on without a reset: first episodes only
@@ -304,6 +315,7 @@ class LLMAloneEvaluation:
         state["records"].append({key: v.cpu() for key, v in records.items()})
         state["trajectories"].append([traj[: int(n) + 1, i] for i, n in enumerate(fl["length"].tolist())])
         state["done"].append(k)
+        state.setdefault("ge_left", {})[k] = fl.get("ge_left")  # by chunk: files of the first formats lack it
         state["in_flight"] = None
         state["wall_s"] = wall()
         state["policy"] = self._policy_state()
@@ -332,12 +344,13 @@ class LLMAloneEvaluation:
         in_flight = state["in_flight"]
         calls_in_flight = sum(int(st["in_flight"]["llm_calls"].sum()) for st in states if st["in_flight"] is not None)
         trajectories = [(k * self.chunk + i, t) for k in order for i, t in enumerate(chunks[k][1])]
+        ge_left = {k: v for st in states for k, v in (st.get("ge_left") or {}).items() if v is not None}
         return {"metrics": agg, "complete": len(order) >= self.n_chunks,
                 "episodes_scored": int(agg["n_episodes"]), "episodes_total": len(self.scenarios),
                 "chunks_done": len(order), "chunks": self.n_chunks,
                 "in_flight_step": None if in_flight is None else int(in_flight["step"]),
                 "cost": self.cost(states, calls_scored, calls_in_flight), "records": records,
-                "trajectories": trajectories, "invocations": int(state["invocations"]),
+                "trajectories": trajectories, "ge_left": ge_left, "invocations": int(state["invocations"]),
                 "shard": self.shard, "shards": self.shards, "progress_files": len(states)}
 
     def cost(self, states: list[dict[str, Any]], calls_scored: int, calls_in_flight: int) -> dict[str, float]:
@@ -367,8 +380,13 @@ class LLMAloneEvaluation:
         if result["records"]:
             save_records(result["records"], self.out / "episodes.csv")
         save_aggregates(dict(result["metrics"]), self.out / "metrics.json")
-        from uavlae.envs.render import draw_scenario
+        from uavlae.envs.render import draw_scenario, episode_outcome
 
+        records = result["records"]
+        at = {int(r): j for j, r in enumerate(records["row"].tolist())} if records else {}
         for i, traj in result["trajectories"][: self.n_plots]:
+            outcome = f": {episode_outcome({k: v[at[i]] for k, v in records.items()})}" if i in at else ""
+            left = result.get("ge_left", {}).get(i // self.chunk)
             draw_scenario(self.scenarios[i], [traj], path=self.out / f"trajectory_{i}.png",
-                          title=f"{title} scenario {i}".strip(), cfg=self.env_cfg)
+                          title=f"{title} scenario {i}{outcome}".strip(), cfg=self.env_cfg,
+                          ge_left=None if left is None else left[i % self.chunk])

@@ -7,9 +7,14 @@ a log line every ``trainer.progress_every_s`` seconds says how far the run is::
 
     sac seed0: 51,200 / 400,000 frames (12.8%), 1,000 frames/s, ETA 5m49s; last evaluation at 50,176: DCR 0.297 CR 0.125 SLR 0.000
 
-frames/s and the ETA count this process's wall clock since it started (evaluations included,
-since they take the same time again on the way to the end); a resumed run counts from where it
-resumed.
+The first line comes ``trainer.progress_first_s`` after the start (a reader learns at once that the
+run moves and how fast), the next ones every ``trainer.progress_every_s``. frames/s and the ETA
+count this process's wall clock since it started (evaluations included, since they take the same
+time again on the way to the end); a resumed run counts from where it resumed.
+
+An evaluation reports the same way, by episodes (:class:`EpisodeProgress`)::
+
+    sac_llm with its advisor: step 120, 3 of 8 episodes done, 42 s; advisor asked 40 of 64 rows
 """
 
 from __future__ import annotations
@@ -44,16 +49,18 @@ class Progress:
         name: what the lines call the run (method and seed).
         bar: show a bar when ``stream`` is a terminal.
         every_s: seconds between lines where there is no bar (0: no lines).
+        first_s: seconds to the first line (None: ``every_s``; never later than ``every_s``).
         stream: where the bar draws (stderr).
         clock: seconds, for the tests (``time.monotonic``).
     """
 
     def __init__(self, total: int, initial: int = 0, *, name: str = "", bar: bool = True, every_s: float = 60.0,
-                 stream: TextIO | None = None, clock: Any = time.monotonic):
+                 first_s: float | None = None, stream: TextIO | None = None, clock: Any = time.monotonic):
         self.total, self.frames, self.name = int(total), int(initial), name
         self.start_frames, self.clock = int(initial), clock
-        self.t0 = self.last_line = clock()
+        self.t0 = clock()
         self.every_s = float(every_s)
+        self.next_line = self.t0 + min(self.every_s, self.every_s if first_s is None else float(first_s))
         self.last_eval: dict[str, float] = {}
         self.last_eval_frames: int | None = None
         stream = sys.stderr if stream is None else stream
@@ -73,8 +80,8 @@ class Progress:
         self.frames += int(n)
         if self.bar is not None:
             self.bar.update(int(n))
-        elif self.every_s > 0 and self.clock() - self.last_line >= self.every_s:
-            self.last_line = self.clock()
+        elif self.every_s > 0 and self.clock() >= self.next_line:
+            self.next_line = self.clock() + self.every_s
             log.info("%s", self.line())
 
     def update(self, n: int) -> None:
@@ -118,4 +125,42 @@ def progress_for(cfg: Any, tr: Any, initial: int) -> Progress:
     of the run ``cfg`` (named by its method and seed), from ``initial`` frames."""
     method = getattr(getattr(cfg, "experiment", None), "method", None) or cfg.name
     return Progress(tr.total_frames, initial, name=f"{method} seed{cfg.seed}", bar=tr.progress_bar,
-                    every_s=tr.progress_every_s)
+                    every_s=tr.progress_every_s, first_s=tr.progress_first_s)
+
+
+class EpisodeProgress:
+    """An evaluation's progress, called after every env step of its rollout (``on_step``): a line
+    ``first_s`` after it starts, then every ``every_s``, with the step, the episodes done of
+    ``episodes`` and what ``extra()`` adds (the advisor's rows asked); and the stop, checked at
+    every step (``stop.check()`` raises when one was asked).
+
+    Args:
+        name: what the lines call the evaluation.
+        episodes: the episodes it flies (one per scenario).
+        every_s, first_s: as :class:`Progress`'s (0: no lines).
+        stop: a :class:`uavlae.lifecycle.GracefulStop` (None: none checked).
+        extra: a callable giving more of the line, or None.
+        clock: seconds, for the tests.
+    """
+
+    def __init__(self, name: str, episodes: int, *, every_s: float, first_s: float | None = None, stop: Any = None,
+                 extra: Any = None, clock: Any = time.monotonic):
+        self.name, self.episodes, self.every_s, self.stop, self.extra = name, int(episodes), float(every_s), stop, extra
+        self.clock = clock
+        self.t0 = clock()
+        self.next_line = self.t0 + min(self.every_s, self.every_s if first_s is None else float(first_s))
+        self.lines = 0
+
+    def __call__(self, step: int, finished: Any, next_td: Any = None) -> None:
+        if self.stop is not None:
+            self.stop.check()
+        if self.every_s > 0 and self.clock() >= self.next_line:
+            self.next_line = self.clock() + self.every_s
+            self.lines += 1
+            log.info("%s", self.line(step, int(finished.sum())))
+
+    def line(self, step: int, done: int) -> str:
+        out = (f"{self.name}: step {step}, {done} of {self.episodes} episodes done, "
+               f"{format_duration(self.clock() - self.t0)}")
+        more = self.extra() if self.extra is not None else ""
+        return out + (f"; {more}" if more else "")

@@ -110,3 +110,24 @@ def publish_final(experiment: Any, run_dir: Path) -> bool:
         experiment.log(tables)
     experiment.summary.update(numbers(final))
     return True
+
+
+def route_library_output(show: bool) -> None:
+    """Where wandb's and torchrl's own messages go: the run's log only (``show`` false), or the
+    terminal as well (``logger.library_output``). torchrl prints to the terminal through a handler
+    of its own, with colour codes; it then writes through the file handlers of the root logger
+    (Hydra's ``<job>.log`` in the run folder) instead. wandb keeps its messages in its own log in
+    the run's ``wandb/`` folder when silent (``WANDB_SILENT``, unless the environment sets it)."""
+    import logging
+    import os
+
+    if show:
+        return
+    os.environ.setdefault("WANDB_SILENT", "true")
+    lg = logging.getLogger("torchrl")
+    for h in list(lg.handlers):
+        if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler):
+            lg.removeHandler(h)
+    for h in logging.getLogger().handlers:
+        if isinstance(h, logging.FileHandler) and h not in lg.handlers:
+            lg.addHandler(h)

@@ -60,8 +60,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     width = max(len(k) for k in rows) + 2
     lines.append(" " * width + "".join(f"{k:>8}" for k in PAPER_METRICS))
     for who, agg in rows.items():
-        lines.append(f"{who:<{width}}" + "".join(f"{agg.get(k, float('nan')):8.3f}" for k in PAPER_METRICS))
+        lines.append(f"{who:<{width}}" + "".join(f"{_num(agg.get(k)):8.3f}" for k in PAPER_METRICS))
     lines.extend(f"  {k}: {v}" for k, v in METRIC_MEANINGS.items())
+    lines.extend(_budget_lines(summary.get("advised_eval")))
     ov = summary.get("override")
     if ov:
         kind = summary.get("advisor_kind", "advisor")
@@ -76,25 +77,15 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{int(ov.get('source/fallback', 0)):,} failed answers."
         )
         if ov.get("advised_fraction") is not None:
-            gap, agree = ov.get("actor_gap", float("nan")), ov.get("actor_agree", float("nan"))
+            gap, agree = _num(ov.get("actor_gap")), _num(ov.get("actor_agree"))
             lines.append(
                 f"  Dependence: {100 * ov['advised_fraction']:.1f}% of the stored transitions are the advisor's; "
                 f"where it acted, the actor's own action lay {gap:.2f} from it on average "
                 f"(within {ov.get('agree_tol', 0.1):g} in {100 * agree:.0f}% of rows)"
                 + (f"; trigger phased out to {ov['phase']:.2f} of d_th / fp" if ov.get("phase", 1.0) < 1.0 else "") + "."
             )
-        calls = ov.get("advisor/calls")
-        if kind == "llm" and calls is not None:
-            n = max(float(calls), 1.0)
-            lines.append(
-                f"  LLM: {int(calls):,} HTTP calls ({1000 * calls / f_:.1f} per 1000 frames), "
-                f"{int(ov.get('advisor/cache_hits', 0)):,} cache hits; per call p50 {ov.get('advisor/latency_p50_s', float('nan')):.2f} s, "
-                f"p95 {ov.get('advisor/latency_p95_s', float('nan')):.2f} s, "
-                f"{ov.get('advisor/prompt_tokens', 0) / n:.0f} prompt + {ov.get('advisor/completion_tokens', 0) / n:.0f} "
-                f"completion tokens; the loop waited {ov.get('advice_wait_s', 0.0):.1f} s for answers"
-                + (f" after {summary.get('overlap_s', 0.0):.1f} s of gradient steps run while they were in flight"
-                   if summary.get("overlap_s") else "") + "."
-            )
+        if kind == "llm" and ov.get("advisor/calls") is not None:  # training's calls
+            lines.append(_llm_line(ov, f_, summary.get("overlap_s")))
     lines.extend(_cost_lines(summary.get("cost"), summary.get("override")))
     la = summary.get("llm_alone")
     if la:
@@ -140,11 +131,52 @@ def full_run_frames() -> int:
     return int(OmegaConf.load(CONF_DIR / "trainer" / "default.yaml").total_frames)
 
 
+def _num(x: Any) -> float:
+    """A number of the summary as a float: ``None`` (JSON's word for no value) is NaN."""
+    return float("nan") if x is None else float(x)
+
+
+def _llm_line(ov: dict[str, Any], frames: int, overlap_s: float | None) -> str:
+    """The LLM's work in one count, HTTP calls, with its parts: the rows it was asked (less the
+    ones its cache answered) each took a first call, some a call again after an answer the
+    extractor rejected, some a retry after a transport error."""
+    calls, asked, hits, again, retries = (int(ov.get(f"advisor/{k}") or 0)
+                                          for k in ("calls", "requests", "cache_hits", "ask_again", "retries"))
+    first = calls - again - retries
+    n = max(float(calls), 1.0)
+    return (
+        f"  LLM in training: {calls:,} HTTP calls ({1000 * calls / frames:.1f} per 1000 frames) = {first:,} first calls for the "
+        f"{asked:,} rows asked ({hits:,} answered from the cache, rows with the same prompt sharing one call) + "
+        f"{again:,} asked again after an answer it could not use + {retries:,} transport retries; per call p50 "
+        f"{_num(ov.get('advisor/latency_p50_s')):.2f} s, p95 {_num(ov.get('advisor/latency_p95_s')):.2f} s, "
+        f"{ov.get('advisor/prompt_tokens', 0) / n:.0f} prompt + {ov.get('advisor/completion_tokens', 0) / n:.0f} "
+        f"completion tokens; the loop waited {ov.get('advice_wait_s', 0.0):.1f} s for answers"
+        + (f" after {overlap_s:.1f} s of gradient steps run while they were in flight" if overlap_s else "") + "."
+    )
+
+
+def _budget_lines(ev: dict[str, Any] | None) -> list[str]:
+    """The with-advisor evaluation's own LLM calls (apart from training's, counted below), and
+    where its call budget left triggered rows to the actor."""
+    if not ev:
+        return []
+    out = []
+    if ev.get("llm_calls"):
+        out.append(f"  The actor with its advisor asked the LLM for {int(ev['llm_requests']):,} rows in "
+                   f"{int(ev['llm_calls']):,} HTTP calls (not counted in the LLM line of training below).")
+    if ev.get("budget_skipped"):
+        out.append(f"  The actor with its advisor: trainer.eval_advisor_max_calls={ev['max_calls']} rows were asked, "
+                   f"then the actor flew {int(ev['budget_skipped']):,} of the {int(ev['triggered']):,} triggered rows "
+                   "itself, so that row shows less of the advisor than it would give (null asks every row, at the "
+                   "LLM's cost).")
+    return out
+
+
 def _cost_lines(cost: dict[str, Any] | None, ov: dict[str, Any] | None) -> list[str]:
     """What the advice cost: rows by who answered, tokens, time, money; the student's share."""
     if not cost or cost.get("triggered") is None:
         return []
-    money = cost.get("money", float("nan"))
+    money = _num(cost.get("money"))
     lines = [
         f"  Cost: {int(cost['triggered']):,} triggered rows; executed from the LLM's answer {int(cost['rows_llm']):,}, "
         f"the student's {int(cost['rows_student']):,}, a held answer {int(cost['rows_held']):,}, the fallback "
@@ -156,5 +188,5 @@ def _cost_lines(cost: dict[str, Any] | None, ov: dict[str, Any] | None) -> list[
             f"  Student: the LLM was asked for {int(ov['advisor/student/llm_rows']):,} of {int(ov['advisor/student/rows']):,} "
             f"rows (warm-up {int(ov['advisor/student/asked_warmup']):,}, unsure {int(ov['advisor/student/asked_unsure']):,}, "
             f"novel {int(ov['advisor/student/asked_novel']):,}, audit {int(ov['advisor/student/asked_audit']):,}); on the "
-            f"audited rows its velocity lay {ov.get('advisor/student/audit_err_mps', float('nan')):.2f} m/s from the LLM's.")
+            f"audited rows its velocity lay {_num(ov.get('advisor/student/audit_err_mps')):.2f} m/s from the LLM's.")
     return lines

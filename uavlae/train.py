@@ -46,7 +46,8 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 
 from uavlae.algos import OFF_POLICY
-from uavlae.checkpoint import resolve_checkpoint, rng_state, run_dir_of, save_checkpoint, seed_everything, set_rng_state
+from uavlae.checkpoint import (LAST, checkpoint_dir, resolve_checkpoint, rng_state, run_dir_of, save_checkpoint,
+                               seed_everything, set_rng_state)
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
@@ -67,12 +68,18 @@ from uavlae.factories import (
     trim_csv_scalars,
     validate_config,
 )
-from uavlae.files import atomic_write, train_eval_dir
-from uavlae.lifecycle import RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, flatten_keys, lock_name, plan
+from uavlae.entry import ERROR_FILE, recorded, refused_in_job
+from uavlae.errors import ConfigError
+from uavlae.files import atomic_write, finite, train_eval_dir
+from uavlae.lifecycle import (RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, StopRequested, flatten_keys,
+                              lock_name, plan)
 from uavlae.policies.override import OverridePolicy
 from uavlae.policies.random import UniformRandomPolicy
 from uavlae.policies.safety import FilteredPolicy, SafetyFilter
+from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import progress_for
+from uavlae.rules import run_problems
+from uavlae.runlog import route_library_output
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
 log = logging.getLogger(__name__)
@@ -122,20 +129,29 @@ def command_line_keys(cfg: DictConfig, overrides: Sequence[str] | None = None) -
 
 def check_run(cfg: DictConfig, budgets: bool = True) -> None:
     """What makes a run compute something else than it says, refused before anything is
-    written: a frame budget below one collector batch or below the random warm-up (``budgets``;
-    a resume checks them once merged with the recorded run), and a device this machine does
-    not have."""
-    validate_config(cfg)
+    written with one :class:`ConfigError` that names each key: a value out of its range, the
+    rules of meaning (:mod:`uavlae.rules`: no GE, no GE that could be served, ...), a frame
+    budget below one collector batch or below the random warm-up (``budgets``; a resume checks
+    them once merged with the recorded run), and a device this machine does not have."""
+    try:
+        validate_config(cfg)
+        check_device(cfg.device)
+    except ConfigError:
+        raise
+    except ValueError as err:  # the config models' own checks: each names its key
+        raise ConfigError(str(err)) from None
     tr = make_trainer_config(cfg.trainer)
-    check_device(cfg.device)
-    if cfg.controller != "learner" or not budgets:
-        return
-    if tr.total_frames < tr.frames_per_batch:
-        raise ValueError(f"trainer.total_frames={tr.total_frames} is below one collector batch "
-                         f"(trainer.frames_per_batch={tr.frames_per_batch}): raise the budget or lower the batch")
-    if cfg.algo.name in OFF_POLICY and tr.init_random_frames >= tr.total_frames:
-        raise ValueError(f"trainer.total_frames={tr.total_frames} does not exceed the random warm-up "
-                         f"(trainer.init_random_frames={tr.init_random_frames}): no gradient step would run")
+    problems = run_problems(cfg, make_env_config(cfg.env))
+    if cfg.controller == "learner" and budgets and tr.total_frames < tr.frames_per_batch:
+        problems.append(f"trainer.total_frames={tr.total_frames} is below one collector batch "
+                        f"(trainer.frames_per_batch={tr.frames_per_batch}): raise the budget or lower the batch")
+    if (cfg.controller == "learner" and budgets and cfg.algo.name in OFF_POLICY
+            and tr.init_random_frames >= tr.total_frames):
+        problems.append(f"trainer.total_frames={tr.total_frames} does not exceed the random warm-up "
+                        f"(trainer.init_random_frames={tr.init_random_frames}): no gradient step would run")
+    if problems:
+        raise ConfigError(problems[0] if len(problems) == 1 else
+                          f"the config breaks {len(problems)} rules:\n  " + "\n  ".join(problems))
 
 
 def _fingerprint(cfg: DictConfig) -> dict[str, Any]:
@@ -287,6 +303,24 @@ class Training:
         (``eval_actor/``)."""
         out = train_eval_dir(self.run_dir, self.frames)
         title = f"{self.cfg.name} @ {self.frames} frames"
+        before = rng_state()
+        try:
+            self._fly_evaluation(out, title)
+        except StopRequested:  # thrown away: the RNGs as they were, so a resume evaluates from the same state
+            set_rng_state(before)
+            raise
+        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
+                                 "eval/train_wall_s": float(self.counters["wall_s"])}, step=self.frames)
+        self.logger.log_images(_trajectory_images(out), step=self.frames)
+        self.counters["last_eval_frames"] = self.frames
+        every = self.tr.eval_every_frames or self.tr.total_frames
+        self.counters["next_eval"] = (self.frames // every + 1) * every
+
+    def evaluation_owed(self) -> bool:
+        """An evaluation a stop cut short before this run's last checkpoint: due, not made."""
+        return self.counters.get("last_eval_frames") != self.frames and self.frames >= self.counters["next_eval"]
+
+    def _fly_evaluation(self, out: Path, title: str) -> None:
         if self.safety is None:
             flight = self.evaluation.fly(self.learner.actor, out, title=title)
             self.last_eval = flight.metrics
@@ -296,12 +330,6 @@ class Training:
             self.last_eval = {**flight.metrics, **flight.stats}
             alone = self.evaluation.fly(self.learner.actor, out / "actor_alone", title=f"{title}, actor alone")
             self.last_eval.update(_prefixed("actor", alone.metrics))
-        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
-                                 "eval/train_wall_s": float(self.counters["wall_s"])}, step=self.frames)
-        self.logger.log_images(_trajectory_images(out), step=self.frames)
-        self.counters["last_eval_frames"] = self.frames
-        every = self.tr.eval_every_frames or self.tr.total_frames
-        self.counters["next_eval"] = (self.frames // every + 1) * every
 
     def checkpoint(self, final: bool = False) -> Path:
         """An atomic checkpoint at this batch boundary (exact resume). A finished run keeps its
@@ -326,18 +354,40 @@ class Training:
 
 
 def train(t: Training, stop: GracefulStop) -> dict[str, Any]:
-    """The training loop (module doc); returns the final metrics."""
-    t.bar = progress_for(t.cfg, t.tr, t.frames)  # a bar on a terminal, else a line every progress_every_s
+    """The local LLM server's start (advised runs), the training loop (module doc) and the final
+    evaluations; returns the final metrics. The advisor stays up until the end: the actor flies
+    with it once more after training."""
     try:
-        _loop(t, stop)
+        start_llm(t.policy, stop)
+        t.bar = progress_for(t.cfg, t.tr, t.frames)  # a bar on a terminal, else a line every progress_every_s
+        try:
+            _loop(t, stop)
+        finally:
+            t.bar.close()
+        return finish(t)
     finally:
-        t.bar.close()
         t.collector.shutdown()
-    return finish(t)
+
+
+def _stopped(t: Training, signum: int) -> RunStopped:
+    return RunStopped(f"stopped by signal {signum} at {t.frames:,} frames after a checkpoint; continue "
+                      f"with: python -m uavlae.train resume={t.run_dir}", int(signum))
+
+
+def _evaluate_or_stop(t: Training, finished: bool) -> None:
+    """The evaluation due at this batch's end; a stop during it keeps the batch (a checkpoint
+    without the evaluation, which a resume makes first) and ends the run."""
+    try:
+        t.evaluate()
+    except StopRequested as s:
+        t.checkpoint(final=finished)
+        raise _stopped(t, s.signum) from None
 
 
 def _loop(t: Training, stop: GracefulStop) -> None:
     wall0, t0 = float(t.counters["wall_s"]), time.perf_counter()
+    if t.evaluation_owed() and not t.budget_spent():  # the one a stop cut short (the last is finish's)
+        _evaluate_or_stop(t, False)
     while not t.budget_spent():
         t_batch = time.perf_counter()
         if t.updates is not None:
@@ -352,18 +402,28 @@ def _loop(t: Training, stop: GracefulStop) -> None:
         t.log_batch(batch, update_s, overlap_s)
         finished = t.budget_spent()
         if t.frames >= t.counters["next_eval"] or finished:
-            t.evaluate()
+            _evaluate_or_stop(t, finished)
         if t.frames >= t.counters["next_ckpt"] or finished or stop.requested:
             t.checkpoint(final=finished)
         t.progress_note()
         if stop.requested and not finished:
-            raise RunStopped(f"stopped by signal {stop.signum} at {t.frames:,} frames after a checkpoint; continue "
-                             f"with: python -m uavlae.train resume={t.run_dir}", int(stop.signum))
+            raise _stopped(t, int(stop.signum))
 
 
 def finish(t: Training) -> dict[str, Any]:
-    """The final evaluation (unless the last batch made it), the actor with its advisor, the
-    baselines, ``final_metrics.json`` and ``summary.json``."""
+    """After the last batch: the final evaluation (unless the last batch made it), the actor
+    with its advisor, the baselines, ``final_metrics.json`` and ``summary.json``. A stop during
+    any of them ends the run with the resume line: the checkpoint holds the finished training,
+    and the resumed run makes these evaluations again."""
+    try:
+        return _finish(t)
+    except StopRequested as s:
+        raise RunStopped(f"stopped by signal {s.signum} during the final evaluations, after training {t.frames:,} "
+                         f"frames (checkpointed); continue with: python -m uavlae.train resume={t.run_dir}",
+                         s.signum) from None
+
+
+def _finish(t: Training) -> dict[str, Any]:
     tr, cfg, c = t.tr, t.cfg, t.counters
     if c.get("last_eval_frames") != t.frames:  # resumed after the final batch
         t.evaluate()
@@ -373,14 +433,18 @@ def finish(t: Training) -> dict[str, Any]:
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in t.learner.actor.parameters())),
     }
     advised = cfg.advisor.kind != "none"
-    cost = t.policy.cost() if advised else {}  # training's: measured, not replayed; before the advised evaluation
+    # training's, measured (not replayed): before the evaluation with the advisor adds its own calls
+    cost = t.policy.cost() if advised else {}
+    totals = t.policy.run_totals() if advised else None
     if t.collector.safety is not None:
         final.update(_prefixed("safety/train", t.collector.safety_totals.snapshot()))
+    advised_eval = None
     if advised:
-        final.update(_prefixed("override", _deterministic_counts(t.policy.run_totals())))
+        final.update(_prefixed("override", _deterministic_counts(totals)))  # type: ignore[arg-type]
         final.update(_prefixed("cost", cost))
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(t))
+            advised_eval = _advised_eval_counts(tr, final, totals, t.policy.run_totals())  # type: ignore[arg-type]
     t_base = time.perf_counter()
     if tr.baselines:
         final.update(_baselines(cfg, t.evaluation, t.run_dir))
@@ -392,8 +456,8 @@ def finish(t: Training) -> dict[str, Any]:
         "fps": t.frames / train_s if train_s else None, "update_s": c["update_s"], "overlap_s": c["overlap_s"],
         "baselines_s": time.perf_counter() - t_base, "eval_episodes": len(t.evaluation.scenarios),
         "metrics": {**_actor_rows(t), **advised_row(final, str(cfg.name)), **baseline_rows(final)},
-        "advisor_kind": str(cfg.advisor.kind), "override": t.policy.run_totals() if advised else None,
-        "cost": {**cost, "currency": t.policy.currency()} if cost else None,
+        "advisor_kind": str(cfg.advisor.kind), "override": totals,
+        "cost": {**cost, "currency": t.policy.currency()} if cost else None, "advised_eval": advised_eval,
         "pictures": pictures(t.run_dir, t.frames),
     })
     log.info("%s done at %d frames: %s", cfg.name, t.frames,
@@ -429,6 +493,18 @@ def _advised_evaluation(t: Training) -> dict[str, float]:
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
             "advised", "budget_skipped", "frames", "source/llm", "source/student", "source/fallback")
     return {**_prefixed("advised", flight.metrics), **_prefixed("advised/override", {k: flight.stats[k] for k in keep})}
+
+
+def _advised_eval_counts(tr: Any, final: dict[str, Any], before: dict[str, Any],
+                         after: dict[str, Any]) -> dict[str, Any]:
+    """The evaluation with the advisor for the summary: its budget, its triggered rows, those it
+    asked and those the budget left to the actor, and the LLM's rows and HTTP calls it cost (the
+    advisor's counters after it less before: the training's stay apart)."""
+    out = {"max_calls": tr.eval_advisor_max_calls,
+           **{k: final.get(f"advised/override/{k}") for k in ("triggered", "advised", "budget_skipped")}}
+    for k in ("requests", "calls"):
+        out[f"llm_{k}"] = float(after.get(f"advisor/{k}", 0) or 0) - float(before.get(f"advisor/{k}", 0) or 0)
+    return out
 
 
 def _baselines(cfg: DictConfig, evaluation: Evaluation, run_dir: Path) -> dict[str, float]:
@@ -484,7 +560,7 @@ def build_training(cfg: DictConfig, run_dir: Path, logger: Any, evaluation: Eval
 
 def _restore(t: Training, ckpt: dict[str, Any]) -> None:
     if t.replay is not None and ckpt.get("replay_buffer") is None and ckpt["counters"]["frames"] < t.tr.total_frames:
-        raise ValueError(
+        raise ConfigError(
             f"{t.run_dir}: its checkpoint holds no replay buffer (the run finished with "
             "trainer.keep_replay_at_end=false), so it cannot continue exactly; train it anew, or keep the buffer "
             "of runs meant to be extended"
@@ -508,6 +584,7 @@ def _open_run(cfg: DictConfig, run_dir: Path, ckpt: dict[str, Any] | None) -> tu
                                       sample=tr.sample_eval_set or tr.eval_set is None)
     resolved = _resolved(cfg)
     dump_json(run_dir / "config.json", resolved)
+    (run_dir / ERROR_FILE).unlink(missing_ok=True)  # what ended an earlier attempt: this one goes on
     yaml_text = OmegaConf.to_yaml(OmegaConf.create(resolved))
     atomic_write(run_dir / "config.yaml", lambda fh: fh.write(yaml_text.encode("utf-8")))
     meta = run_metadata(resolved)
@@ -544,29 +621,43 @@ def run(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[str, An
         cfg = p.cfg
         OmegaConf.set_struct(cfg, True)
         check_run(cfg)
+        check_llm(cfg, make_env_config(cfg.env))  # an LLM that cannot answer stops the run before it writes
         if p.ckpt:
             log.info("resuming %s from %s at %d frames", cfg.name, cfg.resume, p.ckpt["counters"]["frames"])
         torch.set_num_threads(int(cfg.threads))
-        logger, evaluation = _open_run(cfg, run_dir, p.ckpt)
-        try:
-            if cfg.controller != "learner":
-                return evaluate_controller(cfg, evaluation, logger, run_dir)
-            with GracefulStop() as stop:
+        with GracefulStop() as stop:  # every phase from here on: a stop is honoured (lifecycle doc)
+            logger, evaluation = _open_run(cfg, run_dir, p.ckpt)
+            evaluation.stop = stop
+            try:
+                if cfg.controller != "learner":
+                    return evaluate_controller(cfg, evaluation, logger, run_dir, stop)
                 return train(build_training(cfg, run_dir, logger, evaluation, p.ckpt), stop)
-        finally:
-            logger.close()
+            except StopRequested as s:  # a phase with nothing to keep (a controller's flight, a server start)
+                raise RunStopped(_stop_message(cfg, run_dir, s.signum), s.signum) from None
+            finally:
+                logger.close()
 
 
-def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, run_dir: Path) -> dict[str, Any]:
+def _stop_message(cfg: DictConfig, run_dir: Path, signum: int) -> str:
+    """What a stop outside the training loop's batches leaves, and the command that goes on."""
+    if cfg.controller == "learner" and (checkpoint_dir(run_dir) / LAST).is_file():
+        return f"stopped by signal {signum}; continue from the last checkpoint with: python -m uavlae.train resume={run_dir}"
+    return f"stopped by signal {signum} before there was anything to keep; run the same command again to start over"
+
+
+def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, run_dir: Path,
+                        stop: GracefulStop | None = None) -> dict[str, Any]:
     """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
     (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`; a run
-    paused by its budget writes its final metrics with ``eval/complete`` 0, and the same command
-    continues it)."""
+    paused by its budget, or by a stop, writes its final metrics with ``eval/complete`` 0, and
+    the same command continues it)."""
     env_cfg = evaluation.evaluator.env_cfg
     controller = make_flyer(cfg, env_cfg, evaluation.evaluator.env.action_spec)
     out = train_eval_dir(run_dir, 0)
     t0 = time.perf_counter()
     try:
+        if stop is not None:
+            start_llm(controller, stop)
         flight = evaluation.fly(controller, out, title=str(cfg.name))
         totals = controller.run_totals() if cfg.controller == "llm" else None
     finally:
@@ -590,6 +681,9 @@ def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, ru
         "llm_alone": None if la is None else {k: v for k, v in la.items() if k != "records"},
     })
     _log_controller(cfg, flight)
+    if stop is not None and stop.requested and la is not None and not la["complete"]:
+        raise RunStopped(f"stopped by signal {stop.signum}: the LLM alone's progress is saved (eval/complete 0); the "
+                         "same command continues it", int(stop.signum))
     return final
 
 
@@ -612,27 +706,35 @@ def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:
     return p.kind, p.final
 
 
+def _run_dir(cfg: DictConfig) -> Path:
+    return run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)
+
+
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     # one INFO line per HTTP request buries the progress bar; the LLM counters are in the logs
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    try:
-        final = run(cfg, list(HydraConfig.get().overrides.task))
-    except RunStopped as stopped:
-        print(str(stopped), file=sys.stderr)
-        sys.exit(128 + stopped.signum)
-    run_dir = run_dir_of(resolve_checkpoint(cfg.resume)) if cfg.resume else Path(cfg.run_dir)
-    summary = run_dir / "summary.json"
+    route_library_output(bool(OmegaConf.select(cfg, "logger.library_output", default=False)))
+    hc = HydraConfig.get()
+    hydra_dir = Path(hc.runtime.output_dir) if hc.output_subdir is not None else None
+    with refused_in_job(), recorded(hydra_dir, lambda: _run_dir(cfg), f"{hc.job.name}.log"):
+        try:
+            final = run(cfg, list(hc.overrides.task))
+        except RunStopped as stopped:
+            print(str(stopped), file=sys.stderr)
+            sys.exit(128 + stopped.signum)
+    summary = _run_dir(cfg) / "summary.json"
     if summary.is_file():
         print(format_summary(json.loads(summary.read_text())))
     else:
-        print(json.dumps(final, indent=1))
+        print(json.dumps(finite(final), indent=1))
 
 
 if __name__ == "__main__":
+    from uavlae.entry import command
     from uavlae.llm.config import refuse_secret_overrides
 
     refuse_secret_overrides(sys.argv)  # before Hydra writes the command line into the run folder
-    main()
+    command(main)

@@ -390,6 +390,7 @@ def rollout_metrics(
     generator: torch.Generator | None = None,
     cfg: EnvConfig | Mapping | None = None,
     tensordict: TensorDictBase | None = None,
+    on_step: Callable[[int, Tensor, TensorDictBase], None] | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, float], list[Tensor]]:
     """Run ``env`` until each batch row has finished one episode (or ``max_steps`` ran out).
 
@@ -402,6 +403,9 @@ def rollout_metrics(
         generator: the random policy's generator (``None``: a fresh one seeded 0).
         cfg: the env config (default ``env.cfg`` / ``env.base_env.cfg``).
         tensordict: a reset tensordict to start from (default ``env.reset()``).
+        on_step: called after every step with the steps done, the rows whose first episode has
+            ended (``[B]`` bool) and the step's ``"next"`` tensordict: the caller's progress line,
+            what it keeps of each episode's end, and its way to stop (it raises).
 
     Rows whose episode ended keep being stepped without a reset (their output is ignored),
     so each row contributes exactly its first episode: ``records`` has B entries, one per row
@@ -430,7 +434,7 @@ def rollout_metrics(
     length = torch.zeros(b, dtype=torch.int64, device=env.device)
     nxt = None
     with torch.no_grad():
-        for _ in range(max_steps):
+        for step in range(max_steps):
             td = policy(td)
             td = env.step(td)
             nxt = td.get("next")
@@ -438,6 +442,8 @@ def rollout_metrics(
             length = length + (~finished).long()
             done = tracker.update(nxt)
             finished = finished | done
+            if on_step is not None:
+                on_step(step + 1, finished, nxt)
             if bool(finished.all()):
                 break
             # keep stepping finished rows without a reset: only first episodes count

@@ -86,6 +86,7 @@ def draw_scenario(
     *,
     index: int = 0,
     labels: Sequence[str] | None = None,
+    ge_left: Any = None,
     figsize: tuple[float, float] = (7.0, 7.0),
     dpi: int = 110,
 ) -> Figure:
@@ -100,10 +101,14 @@ def draw_scenario(
         title: the axes title.
         cfg: the env config (area size, TA, LA, data range); default docs/model.md's.
         labels: one legend label per trajectory.
+        ge_left: the data each GE holds at the end of the trajectory (``[G]``, the scene's GE
+            order): the GEs are drawn so, an emptied one hollow, not at the scene's own data.
     """
     cfg = make_env_config(cfg)
     a = cfg.area
     scene = _scene(scenario_or_state, cfg, index)
+    if ge_left is not None:
+        scene["ge_remaining"] = _np(ge_left).reshape(-1)
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -213,6 +218,27 @@ def _draw_trajectories(ax: Any, trajs: list[np.ndarray], labels: Sequence[str] |
         handles += [Line2D([], [], ls="", marker="o", color="grey", label="trajectory start"),
                     Line2D([], [], ls="", marker="s", mfc="white", mec="grey", label="trajectory end")]
     return handles
+
+
+# how an episode ended, from its record (uavlae.envs.metrics): the first that holds, in this order
+_ENDINGS = (("bz_collision", "crashed into a building"), ("nfz_entry", "entered a no-fly zone"),
+            ("ou_collision", "collided with another UAV"), ("landed", "landed"),
+            ("energy_exhausted", "ran out of energy"), ("truncated", "out of time"))
+
+
+def episode_outcome(record: Mapping[str, Any]) -> str:
+    """One episode's outcome for a picture's title, from its record (a row of ``episodes.csv``):
+    how it ended, the share of the data it collected, and a speeding or boundary exit on the way,
+    e.g. ``"landed, DCR 0.83, sped in an RZ"``."""
+    flag = {k: bool(_np(v)) for k, v in record.items() if k in dict(_ENDINGS) or k in ("rz_speeding", "boundary_exit")}
+    how = next((text for key, text in _ENDINGS if flag.get(key)), "ended")
+    total = float(_np(record.get("data_total", 0.0)))
+    out = how + (f", DCR {float(_np(record['data_collected'])) / total:.2f}" if total > 0 else "")
+    if flag.get("boundary_exit"):
+        out += ", left the area"
+    if flag.get("rz_speeding"):
+        out += ", sped in an RZ"
+    return out
 
 
 def figure_to_rgb(fig: Figure) -> np.ndarray:

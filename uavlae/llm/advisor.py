@@ -213,6 +213,53 @@ class LLMAdvisor:
         name = self.cfg.api_key_env
         return (os.environ.get(name) or None) if name else None
 
+    # -- before a run ----------------------------------------------------------------------
+    def check_key(self) -> None:
+        """Raise :class:`EndpointError` naming the variable when the endpoint needs a key
+        (``llm.key_required``) and ``llm.api_key_env`` holds none: no request is sent."""
+        c = self.cfg
+        if c.key_required and not self._api_key():
+            raise EndpointError(f"llm.api_key_env: the environment variable {c.api_key_env} is not set (or empty), and "
+                                f"{c.base_url or 'the endpoint'} answers nobody without a key; export "
+                                f"{c.api_key_env}=<your key> and run again")
+
+    def preflight(self, state: AdvisorState) -> None:
+        """One question before a run does any work: the key's variable (:meth:`check_key`), then
+        ``state`` asked once of ``llm.base_url`` at the run's settings, one attempt with its
+        transport retries. Any chat completion passes, valid action or not; a key it refuses, a
+        URL that does not answer and a model it does not serve raise one :class:`EndpointError`
+        naming the URL or the variable. Neither cached nor counted."""
+        self.check_key()
+        if self.base_url_or_none is None:
+            return  # the local server: started up front (start), nothing to ask before
+        asyncio.run_coroutine_threadsafe(self._preflight(state), self._background_loop()).result()
+
+    async def _preflight(self, state: AdvisorState) -> None:
+        c, url = self.cfg, self.base_url_or_none.rstrip("/") + "/chat/completions"  # type: ignore[union-attr]
+        client, slots = self._http()
+        headers = {"Content-Type": "application/json"}
+        if self._api_key():
+            headers["Authorization"] = f"Bearer {self._api_key()}"
+        key_note = f" (key from ${c.api_key_env})" if c.api_key_env else ""
+        try:
+            await chat_completion(client, url, self._body(self._messages(state), state, 1), headers,
+                                  timeout_s=c.timeout_s, max_retries=c.max_retries, backoff_base_s=c.backoff_base_s,
+                                  backoff_max_s=c.backoff_max_s, retry_after_max_s=c.retry_after_max_s,
+                                  max_response_bytes=c.max_response_bytes, slot=slots,
+                                  deadline=RowDeadline(c.row_deadline_s))
+        except PermanentFailure as e:
+            self._set_fatal(url, e)
+            raise self._fatal from None  # type: ignore[misc]
+        except (RequestFailed, BadResponse) as e:
+            raise EndpointError(f"LLM endpoint {url}{key_note} did not answer a first question before the run: "
+                                f"{self._redact(str(e))[:200]}; check llm.base_url (and that the server runs), or "
+                                "llm.timeout_s and llm.max_retries for a slow one") from None
+
+    def start(self) -> str:
+        """The endpoint's URL, starting the local server now when ``llm.base_url`` is null (not at
+        the first request, where its start would count as a training step)."""
+        return self._resolve_base_url()
+
     def _redact(self, text: str) -> str:
         key = self._api_key()
         return text.replace(key, "***") if key else text

@@ -48,6 +48,10 @@ class LLMConfig(StrictModel):
     base_url: str | None = None  # ".../v1"; None with server.autostart: the local server's URL
     model: str = "smollm2-135m-instruct"
     api_key_env: str | None = None  # NAME of the env var holding the key; never the key
+    key_required: bool = False  # the endpoint answers nobody without a key: an unset variable stops the run at once
+    # before any work, ask the endpoint one question (a sample state at these settings), so a key it
+    # refuses, a URL that does not answer or a model it does not serve stops the command up front
+    preflight: bool = True
     temperature: float = Field(0.0, ge=0, le=2)  # DeepSeek-R1 ignores it
     retry_temperature: float | None = Field(0.7, ge=0, le=2)  # ask-again attempts; None: temperature
     top_p: float = Field(1.0, gt=0, le=1)
@@ -114,6 +118,8 @@ class LLMConfig(StrictModel):
     def _check(self) -> "LLMConfig":
         if self.base_url is None and not self.server.autostart:
             raise ValueError("llm.base_url is required unless llm.server.autostart is true")
+        if self.key_required and not self.api_key_env:
+            raise ValueError("llm.key_required needs llm.api_key_env, the variable that holds the key")
         if self.base_url is not None and not self.base_url.startswith(("http://", "https://")):
             raise ValueError(f"llm.base_url must start with http:// or https://, got {self.base_url!r}")
         if self.cache_mode != "off" and not self.cache_path:

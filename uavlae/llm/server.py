@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import collections
 import importlib.util
+import logging
 import os
 import shutil
 import signal
@@ -27,6 +28,8 @@ from typing import Iterator
 import httpx
 
 from .config import ServerConfig
+
+_log = logging.getLogger("uavlae.llm")
 
 _MARKER = "UAVLAE_LLM_LISTENING "
 SMOLLM2_GGUF = "SmolLM2-135M-Instruct.Q4_1.gguf"
@@ -109,6 +112,9 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
     # a process group of its own: a stop sent to the trainer's whole group (Ctrl-C in a terminal, a
     # scheduler's SIGTERM) reaches the trainer, which ends its batch with the server still
     # answering and then stops it; the server cannot outlive the trainer (stdin EOF)
+    t0 = time.monotonic()
+    _log.info("starting the local LLM server (%s, %d slot(s), %d thread(s)); it has %g s to answer "
+             "(llm.server.startup_timeout_s)", Path(model).name, cfg.n_parallel, cfg.n_threads, cfg.startup_timeout_s)
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env, bufsize=1, start_new_session=True)
     log: collections.deque = collections.deque(maxlen=200)  # bounded: a long run logs a lot
@@ -133,6 +139,7 @@ def local_server(cfg: ServerConfig | None = None, *, port: int = 0, **overrides)
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise ServerStartError(_why("never became healthy", proc, log))
             time.sleep(0.2)
+        _log.info("local LLM server ready at %s/v1 after %.1f s", address, time.monotonic() - t0)
         yield LocalServer(base_url=address + "/v1", pid=proc.pid, model_path=model, slots_dir=slots_dir)
     finally:
         _stop(proc)
