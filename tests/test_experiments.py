@@ -547,7 +547,7 @@ def test_config_differences_by_hand():
 
 
 def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(tmp_path, monkeypatch):
-    from uavlae import factories
+    from uavlae import runlog
 
     def git(*args: str) -> str:
         return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
@@ -559,13 +559,13 @@ def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(
     git("init", "-q")
     git("add", ".")
     git("commit", "-qm", "first")
-    monkeypatch.setattr(factories, "REPO_ROOT", tmp_path)
-    assert factories.git_info() == {"commit": git("rev-parse", "HEAD"), "dirty": False}
+    monkeypatch.setattr(runlog, "REPO_ROOT", tmp_path)
+    assert runlog.git_info() == {"commit": git("rev-parse", "HEAD"), "dirty": False}
     (tmp_path / "results" / "report.md").write_text("regenerated\n")
     (tmp_path / "notes.txt").write_text("untracked\n")
-    assert factories.git_info()["dirty"] is False
+    assert runlog.git_info()["dirty"] is False
     (tmp_path / "code.py").write_text("x = 2\n")
-    assert factories.git_info()["dirty"] is True
+    assert runlog.git_info()["dirty"] is True
 
 
 def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):

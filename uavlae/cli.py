@@ -17,7 +17,7 @@ import sys
 def evaluate() -> None:
     """``uavlae-evaluate checkpoint=RUN_DIR [key=value ...]`` (``python -m uavlae.evaluate``)."""
     from uavlae.evaluate import main
-    from uavlae.factories import without_hydra_output
+    from uavlae.runlog import without_hydra_output
 
     sys.argv = without_hydra_output(sys.argv)
     main()
@@ -26,7 +26,7 @@ def evaluate() -> None:
 def export() -> None:
     """``uavlae-export checkpoint=RUN_DIR out=actor.pt2`` (``python -m uavlae.export``)."""
     from uavlae.export import main
-    from uavlae.factories import without_hydra_output
+    from uavlae.runlog import without_hydra_output
 
     sys.argv = without_hydra_output(sys.argv)
     main()

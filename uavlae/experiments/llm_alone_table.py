@@ -35,7 +35,7 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[st
     from uavlae.envs.metrics import aggregate
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import eval_set_path, make_evaluation
-    from uavlae.factories import make_heuristic
+    from uavlae.factories import HeuristicGroup, make_heuristic
 
     c = OmegaConf.create(cfg)
     # the run's chunks and seeds, none of its call budget or shards: the heuristic flies them all here
@@ -48,7 +48,7 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[st
     chunk = int(tr.eval_chunk or len(scenarios))
     scenarios = scenarios[: (max(rows) // chunk + 1) * chunk]
     with tempfile.TemporaryDirectory() as tmp:
-        flight = make_evaluation(c, env_cfg, scenarios, chunked=True).fly(make_heuristic(c, env_cfg), tmp)
+        flight = make_evaluation(c, env_cfg, scenarios, chunked=True).fly(make_heuristic(HeuristicGroup.of(c), env_cfg), tmp)
         records = flight.llm_alone["records"]
     keep = torch.isin(records["row"], torch.tensor(rows))
     return aggregate({k: v[keep] for k, v in records.items()})
