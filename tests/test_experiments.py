@@ -801,3 +801,40 @@ def test_wandb_runs_are_grouped_by_invocation_named_and_tagged_with_trajectory_i
     finally:
         logger.close()
     assert list((tmp_path / "wandb").glob("offline-run-*/files/media/images/eval/trajectory_0_*.png"))
+
+
+def test_the_committed_heuristics_table_regenerates_from_its_record():
+    """``results/heuristics_table.md``, byte for byte, from the ``heuristics_table.json`` beside it."""
+    from uavlae.experiments.heuristics_table import markdown
+
+    record = json.loads((REPO_ROOT / "results" / "heuristics_table.json").read_text())
+    seed = int(record["runs"][0]["command"].split("trainer.eval_seed=")[1].split()[0])
+    assert markdown(record, seed).encode() == (REPO_ROOT / "results" / "heuristics_table.md").read_bytes()
+
+
+def test_every_report_helper_is_written_once_in_the_toolkit():
+    """Reading JSON or CSV, writing CSV and saving a figure happen in uavlae/experiments/reporting.py
+    only; every report writer goes through it."""
+    import ast
+
+    import uavlae.experiments
+
+    def does_io(node: ast.Call) -> str | None:
+        f = node.func
+        if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "csv":
+            return f"csv.{f.attr}"
+        if isinstance(f, ast.Attribute) and f.attr == "savefig":
+            return "savefig"
+        if (isinstance(f, ast.Attribute) and f.attr == "loads" and node.args and isinstance(node.args[0], ast.Call)
+                and isinstance(node.args[0].func, ast.Attribute) and node.args[0].func.attr == "read_text"):
+            return "json.loads(read_text)"
+        return None
+
+    found = []
+    for path in sorted(Path(uavlae.experiments.__file__).parent.glob("*.py")):
+        if path.name == "reporting.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and (what := does_io(node)):
+                found.append(f"{path.name}:{node.lineno} {what}")
+    assert found == []

@@ -180,9 +180,3 @@ def probability_of_improvement(x: Grid, y: Grid, metric: str, n_boot: int = 2000
     reps = _prob_improvement(sx_[ix[:, :, None], scen[:, None, :]], sy_[iy[:, :, None], scen[:, None, :]])
     lo, hi = np.percentile(reps, [2.5, 97.5])
     return est, float(lo), float(hi)
-
-
-def fmt(p: float, lo: float, hi: float, digits: int = 3) -> str:
-    if not math.isfinite(p):
-        return "n/a"
-    return f"{p:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
