@@ -342,7 +342,7 @@ def make_policy(advisor_cfg: Any, actor: Any, env_cfg: EnvConfig, *, seed: int,
     )
 
 
-def make_controller(controller: str, env_cfg: EnvConfig, *, seed: int, heuristic: HeuristicGroup,
+def make_controller(controller: str, env_cfg: EnvConfig, *, seed: int, heuristic: HeuristicGroup | None = None,
                     action_spec: Any = None, advisor_cfg: Any = None, llm_cfg: Any = None) -> Any:
     """``controller`` -> the evaluation-only controllers: ``heuristic`` (the greedy baseline),
     ``llm`` (the LLM of ``advisor_cfg`` and ``llm_cfg`` at every step, the heuristic for failed
@@ -352,6 +352,9 @@ def make_controller(controller: str, env_cfg: EnvConfig, *, seed: int, heuristic
         if action_spec is None:
             raise ValueError("controller=random needs the env's action_spec")
         return UniformRandomPolicy(action_spec, seed=seed)
+    if heuristic is None:
+        raise ValueError(f"controller={controller!r} flies a heuristic: make_controller needs its group "
+                         "(heuristic=HeuristicGroup.of(cfg))")
     acting = make_heuristic(heuristic, env_cfg)
     if controller == "heuristic":
         return acting

@@ -520,6 +520,17 @@ class OverridePolicy(TensorDictModuleBase):
         c["actor_agree"] = c.get("agree_rows", 0) / gap_rows if gap_rows else nan
         return c
 
+    def _with_settings(self, counts: dict[str, Any]) -> dict[str, Any]:
+        """``counts`` with their rates, and the settings that shaped them: the call budget, the
+        held slots, the phase-out and the agreement tolerance."""
+        c = self._rates(dict(counts))
+        c["calls_used"] = self.calls_used
+        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
+        c["hold_steps"] = self.hold_steps
+        c["phase"] = self.phase()
+        c["agree_tol"] = self.agree_tol
+        return c
+
     def snapshot(self, reset: bool = False) -> dict[str, float]:
         """Counters since the last reset: frames acted with the override on, ``triggered``,
         ``source/<name>``, ``aborts``, ``held`` (triggered rows that executed a held answer),
@@ -530,12 +541,7 @@ class OverridePolicy(TensorDictModuleBase):
         (fallbacks / triggered), ``calls_used`` / ``max_calls`` (the run's budget; -1: none),
         and the advisor's own counters under ``advisor/`` (the LLM's: requests, calls, cache
         hits, retries, failures by kind, tokens, latency quantiles)."""
-        c = self._rates(dict(self.counts))
-        c["calls_used"] = self.calls_used
-        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
-        c["hold_steps"] = self.hold_steps
-        c["phase"] = self.phase()
-        c["agree_tol"] = self.agree_tol
+        c = self._with_settings(self.counts)
         if self.advisor is not None:
             adv = self.advisor.snapshot(reset=reset)
             c.update({f"advisor/{k}": v for k, v in adv.items()})
@@ -555,12 +561,7 @@ class OverridePolicy(TensorDictModuleBase):
         """The run's counters (never reset, checkpointed): :meth:`snapshot`'s names, the
         advisor's counts summed over the whole run and, for an LLM advisor, its per-call
         latency quantiles over every answered call (``advisor/latency_p50_s``, ``_p95_s``)."""
-        c = self._rates(dict(self.totals))
-        c["calls_used"] = self.calls_used
-        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
-        c["hold_steps"] = self.hold_steps
-        c["phase"] = self.phase()
-        c["agree_tol"] = self.agree_tol
+        c = self._with_settings(self.totals)
         if self.advisor is not None:
             window = self.advisor.snapshot(reset=False)
             for k in ADVISOR_COUNTS:
