@@ -11,6 +11,10 @@ reward term, ...) and a PNG of the first few trajectories.
 ``python -m uavlae.evaluate checkpoint=RUN_DIR_OR_FILE`` evaluates a training checkpoint, on its
 run's world or on the world its command line changes (``env.ou.count.min=3 env.ou.count.max=3``:
 the observation's padding stays the training one, so the same actor serves every setting).
+
+The controllers are evaluated here too, for every entry point: :func:`evaluate_controller` (the
+``heuristic``, ``llm`` and ``random`` experiments, which train nothing) and :func:`fly_baselines`
+(the heuristic and a uniform-random policy on a training run's evaluation set).
 """
 
 from __future__ import annotations
