@@ -149,6 +149,12 @@ bench-theile: $(STAMP)
 	$(BIN)/python benchmarks/vs_ppo.py --frames 4096 --env shaped_geodesic trainer.init_random_frames=1024 \
 		trainer.baselines=false --methods theile sac --out benchmarks/theile_vs_ppo.json
 
+# Our stratified bootstrap and probability of improvement beside rliable's (the dev extra) on the advice study's
+# scores -> benchmarks/stats_vs_rliable.json (tests/test_stats_vs_rliable.py: where the two must agree)
+.PHONY: bench-stats
+bench-stats: $(STAMP)
+	$(BIN)/python benchmarks/stats_vs_rliable.py
+
 # The greedy heuristic and the planner on the same 32 and 256 scenarios -> results/heuristics_table.{json,md}
 .PHONY: heuristics-table
 heuristics-table: $(STAMP)

@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
     from uavlae.envs.gym_adapter import UAVGymEnv
-    from uavlae.factories import CONF_DIR, make_env, make_learner, make_policy
+    from uavlae.factories import CONF_DIR, HeuristicGroup, make_env, make_learner, make_policy
     from uavlae.machine import describe_machine
     from uavlae.factories import dump_json
     from uavlae.train import REPLAY_KEYS
@@ -81,7 +81,8 @@ def main(argv: list[str] | None = None) -> None:
         cfg = compose("config", overrides=["+exp=sac", f"env={a.env}", "threads=1"])
     env = make_env(env_cfg, b, seed=0)
     learner = make_learner(cfg.algo, env)
-    policy = make_policy(cfg, learner.behaviour, env_cfg)
+    policy = make_policy(cfg.advisor, learner.behaviour, env_cfg, seed=int(cfg.seed), heuristic=HeuristicGroup.of(cfg),
+                         llm_cfg=cfg.llm)
     collector = UAVCollector(env, policy, frames_per_batch=b, keep_keys=TRANSITION_KEYS, seed=0)
     replay = make_replay_buffer(1_000_000, SAC_HP["batch_size"], seed=0)
     while len(replay) < 20_000:  # the actor's own transitions (a real mix of states)

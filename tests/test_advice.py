@@ -31,6 +31,7 @@ from uavlae.policies.override import (
     POLICY,
     SCRIPTED,
     STUDENT,
+    Advisor,
     HeuristicAdvisor,
     OverridePolicy,
     ScriptedAdvisor,
@@ -58,7 +59,7 @@ def _fly(mode: str, observe: bool, steps: int = 120) -> tuple[int, int]:
     reference = GreedyPolicy(env.cfg)
     advisor = HeuristicAdvisor(GreedyPolicy(env.cfg))
     if not observe:
-        advisor.observe = None  # the advisor as it was: it sees only the rows asked this slot
+        advisor.observe = lambda td: None  # the contract's default: it sees only the rows asked this slot
     actor = TensorDictModule(DriftActor(1), in_keys=["observation"], out_keys=["action"])
     policy = OverridePolicy(actor, advisor, mode=mode, d_th=15.0, fp=0.3, seed=2,
                             perception_radius=env.cfg.safety.perception_radius)
@@ -88,7 +89,7 @@ def test_always_on_trigger_proves_nothing_about_memory():
     """With every row sent every slot both ways agree: why the test above masks rows."""
     env = UAVEnv(batch_size=[6], seed=5)
     ref, adv = GreedyPolicy(env.cfg), HeuristicAdvisor(GreedyPolicy(env.cfg))
-    adv.observe = None
+    adv.observe = lambda td: None  # the contract's default: no memory followed
     actor = TensorDictModule(DriftActor(1), in_keys=["observation"], out_keys=["action"])
     policy = OverridePolicy(actor, adv, mode="always")
     td = env.reset()
@@ -253,7 +254,7 @@ def _rows(d, n_extra=0):
     return TensorDict({"observation": torch.zeros(B, 3), "state": TensorDict(state, [B])}, [B])
 
 
-class FixedAdvisor:
+class FixedAdvisor(Advisor):
     source = HEURISTIC
 
     def __init__(self, action):

@@ -236,3 +236,21 @@ def test_readme_verdicts_are_the_reports():
     report = verdicts((root / "results" / "advice" / "report.md").read_text().split("## Findings")[0])
     readme = (root / "README.md").read_text().split("### Does advice teach?", 1)[1].split("What the study shows")[0]
     assert verdicts(readme) == report
+
+
+def test_the_committed_report_regenerates_from_its_records(tmp_path):
+    """``results/advice/report.md``, byte for byte, and its figures, from the CSV records beside it."""
+    import shutil
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from uavlae.experiments.advice_report import build
+
+    committed = Path(__file__).resolve().parents[1] / "results" / "advice"
+    for f in committed.glob("*.csv"):
+        shutil.copy(f, tmp_path / f.name)
+    build(tmp_path)
+    assert (tmp_path / "report.md").read_bytes() == (committed / "report.md").read_bytes()
+    figures = {f.name for f in tmp_path.iterdir() if f.suffix in (".png", ".pdf")}
+    assert figures and figures <= {f.name for f in committed.iterdir()}

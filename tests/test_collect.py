@@ -12,7 +12,7 @@ from torch import nn
 
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import UAVEnv
-from uavlae.policies.override import FALLBACK, LLM, POLICY, OverridePolicy
+from uavlae.policies.override import FALLBACK, LLM, POLICY, Advisor, OverridePolicy
 
 B = 4
 
@@ -28,7 +28,7 @@ def det_actor():
     return TensorDictModule(TanhObs(), in_keys=["observation"], out_keys=["action"])
 
 
-class RowAdvisor:
+class RowAdvisor(Advisor):
     """Always advises (0, 0.5); fails on the rows in ``fail_rows``."""
 
     source = LLM

@@ -547,7 +547,7 @@ def test_config_differences_by_hand():
 
 
 def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(tmp_path, monkeypatch):
-    from uavlae import factories
+    from uavlae import runlog
 
     def git(*args: str) -> str:
         return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
@@ -559,13 +559,13 @@ def test_a_run_is_dirty_when_its_code_differs_not_when_results_were_regenerated(
     git("init", "-q")
     git("add", ".")
     git("commit", "-qm", "first")
-    monkeypatch.setattr(factories, "REPO_ROOT", tmp_path)
-    assert factories.git_info() == {"commit": git("rev-parse", "HEAD"), "dirty": False}
+    monkeypatch.setattr(runlog, "REPO_ROOT", tmp_path)
+    assert runlog.git_info() == {"commit": git("rev-parse", "HEAD"), "dirty": False}
     (tmp_path / "results" / "report.md").write_text("regenerated\n")
     (tmp_path / "notes.txt").write_text("untracked\n")
-    assert factories.git_info()["dirty"] is False
+    assert runlog.git_info()["dirty"] is False
     (tmp_path / "code.py").write_text("x = 2\n")
-    assert factories.git_info()["dirty"] is True
+    assert runlog.git_info()["dirty"] is True
 
 
 def test_reuse_skips_finished_and_resumes_unfinished_runs(tmp_path, monkeypatch):
@@ -801,3 +801,40 @@ def test_wandb_runs_are_grouped_by_invocation_named_and_tagged_with_trajectory_i
     finally:
         logger.close()
     assert list((tmp_path / "wandb").glob("offline-run-*/files/media/images/eval/trajectory_0_*.png"))
+
+
+def test_the_committed_heuristics_table_regenerates_from_its_record():
+    """``results/heuristics_table.md``, byte for byte, from the ``heuristics_table.json`` beside it."""
+    from uavlae.experiments.heuristics_table import markdown
+
+    record = json.loads((REPO_ROOT / "results" / "heuristics_table.json").read_text())
+    seed = int(record["runs"][0]["command"].split("trainer.eval_seed=")[1].split()[0])
+    assert markdown(record, seed).encode() == (REPO_ROOT / "results" / "heuristics_table.md").read_bytes()
+
+
+def test_every_report_helper_is_written_once_in_the_toolkit():
+    """Reading JSON or CSV, writing CSV and saving a figure happen in uavlae/experiments/reporting.py
+    only; every report writer goes through it."""
+    import ast
+
+    import uavlae.experiments
+
+    def does_io(node: ast.Call) -> str | None:
+        f = node.func
+        if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "csv":
+            return f"csv.{f.attr}"
+        if isinstance(f, ast.Attribute) and f.attr == "savefig":
+            return "savefig"
+        if (isinstance(f, ast.Attribute) and f.attr == "loads" and node.args and isinstance(node.args[0], ast.Call)
+                and isinstance(node.args[0].func, ast.Attribute) and node.args[0].func.attr == "read_text"):
+            return "json.loads(read_text)"
+        return None
+
+    found = []
+    for path in sorted(Path(uavlae.experiments.__file__).parent.glob("*.py")):
+        if path.name == "reporting.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and (what := does_io(node)):
+                found.append(f"{path.name}:{node.lineno} {what}")
+    assert found == []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import math
 import pickle
@@ -17,12 +18,21 @@ from uavlae.policies.override import (
     HEURISTIC,
     LLM,
     POLICY,
+    Advisor,
+    Handle,
     HeuristicAdvisor,
     LLMAdvisorAdapter,
     OverridePolicy,
 )
 
 INF = math.inf
+
+
+def answered(value):
+    """A future that holds ``value`` already: what an LLM's ``submit`` returns once it has answered."""
+    future = concurrent.futures.Future()
+    future.set_result(value)
+    return future
 
 
 class ConstActor(nn.Module):
@@ -36,7 +46,7 @@ def const_actor():
     return TensorDictModule(ConstActor(), in_keys=["observation"], out_keys=["action"])
 
 
-class RecordingAdvisor:
+class RecordingAdvisor(Advisor):
     """Records what it was given; answers action = (row / 10, 0.5), ok where ``fail`` says not."""
 
     source = LLM
@@ -234,7 +244,7 @@ def test_extra_state_round_trip_and_no_deepcopy():
 
 
 class FakeLLM:
-    """Mimics LLMAdvisor.advise_sync and .stats: answers per state, in order."""
+    """Mimics LLMAdvisor.submit (what LLMAdvisorAdapter asks of its LLM): answers per state, in order."""
 
     def __init__(self, answers):
         from uavlae.llm import make_llm_config
@@ -243,9 +253,9 @@ class FakeLLM:
         self.answers = answers
         self.got = []
 
-    def advise_sync(self, states, timeout=None):
+    def submit(self, states):
         self.got.append(states)
-        return self.answers[: len(states)]
+        return answered(self.answers[: len(states)])
 
 
 def _env_rows():
@@ -270,7 +280,7 @@ def test_llm_adapter_converts_velocity_and_failures():
     pos = td["state", "position"]
     assert [s.position for s in states] == [tuple(pos[0].tolist()), tuple(pos[2].tolist())]
     assert states[0].limits.v_max == v_max
-    assert not hasattr(ad, "fallback")  # one fallback setting: the override's (advisor.fallback)
+    assert ad.fallback is None  # one fallback setting: the override's (advisor.fallback)
 
 
 def test_pickled_policy_carries_no_http_client(tmp_path):
@@ -303,7 +313,7 @@ def test_heuristic_advisor_on_env_rows():
 # ---------------------------------------------------------------------------- fewer calls
 
 
-class CountingAdvisor:
+class CountingAdvisor(Advisor):
     """Answers action = (k / 10, row / 10) on its k-th call (k = 1, 2, ...): a held answer is
     told from a fresh one by its first column. ``fail_rows`` fail on every call."""
 
@@ -427,13 +437,11 @@ class DelayedAdvisor(CountingAdvisor):
         self.started.append(rows.tolist())
         parent = self
 
-        class Handle:
-            done_at = None
-
+        class Later(Handle):
             def result(self):
                 return parent.advise(td_rows, rows)
 
-        return Handle()
+        return Later()
 
 
 def test_begin_sends_the_advice_and_the_actor_acts_in_finish():
@@ -483,3 +491,57 @@ def test_a_rejected_key_stops_the_policy_with_one_message(monkeypatch):
         pol(td)
     assert "sk-never-shown" not in str(info.value) and len(sent) <= 4
     llm.close()
+
+
+# ---------------------------------------------------------------------------- the advisor contract
+
+
+class AdviseOnly(Advisor):
+    """An advisor that writes ``advise`` alone: every other hook is the contract's default."""
+
+    def advise(self, td_rows, rows):
+        return torch.full((rows.numel(), 2), 0.5), torch.ones(rows.numel(), dtype=torch.bool)
+
+
+def test_the_contracts_defaults_fly_checkpoint_and_cost_nothing():
+    adv = AdviseOnly()
+    pol = OverridePolicy(const_actor(), adv, mode="always", fallback=None)
+    assert pol.fallback == "policy"
+    pending = pol.begin(batch(**D))
+    assert pending.done_at is not None and list(pending.handle.failures) == []  # answered when asked
+    out = pol.finish(batch(**D), pending)
+    assert out["action_source"].tolist() == [LLM] * 6  # the default source
+    assert not any(k.startswith("advisor/") for k in pol.snapshot())  # no counters of its own
+    assert "advisor/latency_p50_s" not in pol.run_totals()  # it times no calls
+    assert pol.cost() == {} and pol.currency() is None  # it asks no LLM
+    state = pol.get_extra_state()
+    assert state["advisor"] is None
+    pol.set_extra_state(state)
+    pol.close()
+
+
+def test_an_object_outside_the_contract_is_refused():
+    class Duck:
+        def advise(self, td_rows, rows):
+            return torch.zeros(rows.numel(), 2), torch.ones(rows.numel(), dtype=torch.bool)
+
+    with pytest.raises(TypeError, match="uavlae.policies.advisor.Advisor"):
+        OverridePolicy(const_actor(), Duck())
+
+
+def test_no_module_of_policies_probes_an_advisor_or_its_llm():
+    """The override calls the contract's hooks directly: no getattr or hasattr aimed at an
+    advisor, its handle or its LLM anywhere in uavlae/policies/."""
+    import ast
+    from pathlib import Path
+
+    import uavlae.policies
+
+    found = []
+    for f in sorted(Path(uavlae.policies.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr"):
+                target = ast.unparse(node.args[0]).lower()
+                if any(w in target for w in ("advisor", "llm", "handle", "adv")):
+                    found.append(f"{f.name}:{node.lineno} {ast.unparse(node)}")
+    assert found == []

@@ -4,6 +4,7 @@ local model is in tests/test_train.py); the student itself, the override and the
 
 from __future__ import annotations
 
+import concurrent.futures
 import io
 import math
 
@@ -13,7 +14,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from uavlae.llm import Advice, AdviceFailure, AdvisorState, EndpointError, FailureKind, GroundEquipment, OtherUAV, WorldLimits
-from uavlae.policies.override import FALLBACK, LLM, STUDENT, LLMAdvisorAdapter, OverridePolicy
+from uavlae.policies.override import FALLBACK, LLM, STUDENT, Advisor, LLMAdvisorAdapter, OverridePolicy
 from uavlae.policies.student import (
     N_CELLS, N_DCU, N_ENTITY, AmortizedAdvisor, Student, StudentConfig, encode, make_student_config, shown_state,
 )
@@ -112,7 +113,8 @@ def test_the_student_learns_a_rule_deterministically():
 
 class RuleLLM:
     """Stands in for LLMAdvisor: answers toward_ge for every state it is asked (and fails on
-    the states ``fail`` picks), records what it was asked."""
+    the states ``fail`` picks), records what it was asked; down, it raises the EndpointError
+    a real LLM's future raises."""
 
     def __init__(self, fail=lambda s: False, down=False):
         from uavlae.llm import make_llm_config
@@ -121,12 +123,16 @@ class RuleLLM:
         self.asked: list[AdvisorState] = []
         self.fail, self.down = fail, down
 
-    def advise_sync(self, states, timeout=None):
+    def submit(self, states):
+        future = concurrent.futures.Future()
         if self.down:
-            raise EndpointError("LLM endpoint http://x/v1/chat/completions left 3 rows in a row unanswered")
+            future.set_exception(EndpointError("LLM endpoint http://x/v1/chat/completions left 3 rows in a row "
+                                               "unanswered"))
+            return future
         self.asked += states
-        return [AdviceFailure(kind=FailureKind.OVER_SPEED, detail="x", attempts=10) if self.fail(s)
-                else Advice(*toward_ge(s), confidence=1.0, reasoning="r") for s in states]
+        future.set_result([AdviceFailure(kind=FailureKind.OVER_SPEED, detail="x", attempts=10) if self.fail(s)
+                           else Advice(*toward_ge(s), confidence=1.0, reasoning="r") for s in states])
+        return future
 
     class stats:  # noqa: N801  (what LLMAdvisorAdapter.snapshot reads)
         latencies: list = []
@@ -294,8 +300,9 @@ def test_the_advised_evaluation_leaves_the_student_as_it_was():
 
 
 def test_cost_counts_rows_tokens_and_money_by_hand():
-    class Priced:
+    class Priced(Advisor):
         source = LLM
+        asks_llm = True
 
         def advise(self, td_rows, rows):
             return torch.zeros(rows.numel(), 2), torch.ones(rows.numel(), dtype=torch.bool)

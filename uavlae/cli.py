@@ -30,8 +30,8 @@ def evaluate() -> None:
     """``uavlae-evaluate checkpoint=RUN_DIR [key=value ...]`` (``python -m uavlae.evaluate``)."""
     from uavlae.entry import command
     from uavlae.evaluate import main
-    from uavlae.factories import without_hydra_output
     from uavlae.llm.config import refuse_secret_overrides
+    from uavlae.runlog import without_hydra_output
 
     refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down
     sys.argv = without_hydra_output(sys.argv)
@@ -42,7 +42,7 @@ def export() -> None:
     """``uavlae-export checkpoint=RUN_DIR out=actor.pt2`` (``python -m uavlae.export``)."""
     from uavlae.entry import command
     from uavlae.export import main
-    from uavlae.factories import without_hydra_output
+    from uavlae.runlog import without_hydra_output
 
     sys.argv = without_hydra_output(sys.argv)
     command(main)

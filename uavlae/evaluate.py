@@ -11,6 +11,10 @@ reward term, ...) and a PNG of the first few trajectories.
 ``python -m uavlae.evaluate checkpoint=RUN_DIR_OR_FILE`` evaluates a training checkpoint, on its
 run's world or on the world its command line changes (``env.ou.count.min=3 env.ou.count.max=3``:
 the observation's padding stays the training one, so the same actor serves every setting).
+
+The controllers are evaluated here too, for every entry point: :func:`evaluate_controller` (the
+``heuristic``, ``llm`` and ``random`` experiments, which train nothing) and :func:`fly_baselines`
+(the heuristic and a uniform-random policy on a training run's evaluation set).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -35,20 +40,22 @@ from uavlae.envs import EnvConfig, UAVEnv, make_env_config
 from uavlae.envs.metrics import PAPER_METRICS, format_metrics, rollout_metrics, save_aggregates, save_records
 from uavlae.envs.scenario import Scenario, load_scenarios, sample_scenarios, save_scenarios, unstack_scenarios
 from uavlae.factories import (
-    CONF_DIR, log_evaluation, make_controller, make_env, make_learner, make_safety_filter, make_safety_filter_config,
-    run_metadata,
+    CONF_DIR, HeuristicGroup, make_controller, make_env, make_heuristic, make_learner, make_safety_filter,
+    make_safety_filter_config,
 )
 from uavlae.entry import refused_in_job
 from uavlae.errors import ConfigError, InputError
-from uavlae.files import dump_json
-from uavlae.lifecycle import GracefulStop, StopRequested, flatten_keys
+from uavlae.files import dump_json, train_eval_dir
+from uavlae.lifecycle import GracefulStop, RunStopped, StopRequested, flatten_keys
 from uavlae.llm_alone import LLMAloneEvaluation
 from uavlae.policies.override import OverridePolicy
+from uavlae.policies.random import UniformRandomPolicy
 from uavlae.policies.safety import FilteredPolicy
 from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import EpisodeProgress
 from uavlae.rules import world_problems
-from uavlae.runlog import route_library_output
+from uavlae.runlog import log_evaluation, route_library_output, run_metadata, without_hydra_output
+from uavlae.summary import pictures, write_summary
 
 log = logging.getLogger(__name__)
 
@@ -271,7 +278,93 @@ def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: A
     if learner is not None:
         safety = make_safety_filter(safety_cfg, env_cfg)
         return learner.actor if safety is None else FilteredPolicy(learner.actor, safety)
-    return make_controller(cfg, env_cfg, action_spec=action_spec)
+    return make_controller(cfg.controller, env_cfg, seed=int(cfg.seed), heuristic=HeuristicGroup.of(cfg),
+                           action_spec=action_spec, advisor_cfg=cfg.advisor, llm_cfg=cfg.llm)
+
+
+# ---------------------------------------------------------------------------- the controllers
+
+
+def prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
+    """The finite numbers of ``metrics`` (no booleans) as floats, keyed ``<prefix>/<key>``: what a logger takes."""
+    out = {}
+    for k, v in metrics.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v)):
+            out[f"{prefix}/{k}"] = float(v)
+    return out
+
+
+def fly_baselines(cfg: DictConfig, evaluation: Evaluation, run_dir: Path) -> dict[str, float]:
+    """The greedy heuristic and a uniform-random policy on the same evaluation set."""
+    env_cfg = evaluation.evaluator.env_cfg
+    policies = {"heuristic": make_heuristic(HeuristicGroup.of(cfg), env_cfg),
+                "random": UniformRandomPolicy(evaluation.evaluator.env.action_spec, seed=int(cfg.trainer.eval_seed))}
+    out: dict[str, float] = {}
+    for name, policy in policies.items():
+        flight = evaluation.fly(policy, run_dir / "eval" / f"baseline_{name}", title=name)
+        out.update(prefixed(f"baseline/{name}", flight.metrics))
+    return out
+
+
+def trajectory_images(eval_dir: Path) -> dict[str, Path]:
+    """An evaluation's trajectory pictures, keyed as the dashboard shows them."""
+    return {f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}": p for p in sorted(eval_dir.glob("trajectory_*.png"))}
+
+
+def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, run_dir: Path,
+                        stop: GracefulStop | None = None) -> dict[str, Any]:
+    """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
+    (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`; a run
+    paused by its budget, or by a stop, writes its final metrics with ``eval/complete`` 0, and
+    the same command continues it)."""
+    env_cfg = evaluation.evaluator.env_cfg
+    controller = make_flyer(cfg, env_cfg, evaluation.evaluator.env.action_spec)
+    out = train_eval_dir(run_dir, 0)
+    t0 = time.perf_counter()
+    try:
+        if stop is not None:
+            start_llm(controller, stop)
+        flight = evaluation.fly(controller, out, title=str(cfg.name))
+        totals = controller.run_totals() if cfg.controller == "llm" else None
+    finally:
+        if isinstance(controller, OverridePolicy):
+            controller.close()  # the LLM's client, and the local server it started
+    metrics = {**prefixed("eval", flight.metrics), **prefixed("override", flight.stats),
+               "time/eval_s": time.perf_counter() - t0}
+    la = flight.llm_alone
+    if la is not None:
+        progress = {k: la[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks")}
+        metrics.update({**prefixed("eval", {k: int(v) for k, v in progress.items()}), **prefixed("llm", la["cost"]),
+                        "time/eval_s": la["cost"]["wall_s"]})
+    logger.log_metrics(metrics, step=0)
+    logger.log_images(trajectory_images(out), step=0)
+    final = {"frames": 0, **metrics}
+    dump_json(run_dir / "final_metrics.json", final)
+    write_summary(run_dir, {
+        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
+        "eval_episodes": la["episodes_scored"] if la else len(evaluation.scenarios), "metrics": {str(cfg.name): flight.metrics},
+        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": pictures(run_dir, 0),
+        "llm_alone": None if la is None else {k: v for k, v in la.items() if k != "records"},
+    })
+    _log_controller(cfg, flight)
+    if stop is not None and stop.requested and la is not None and not la["complete"]:
+        raise RunStopped(f"stopped by signal {stop.signum}: the LLM alone's progress is saved (eval/complete 0); the "
+                         "same command continues it", int(stop.signum))
+    return final
+
+
+def _log_controller(cfg: DictConfig, flight: Flight) -> None:
+    agg, la = flight.metrics, flight.llm_alone
+    if la is None:
+        log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
+        return
+    state = "complete" if la["complete"] else (
+        f"paused by the call budget ({la['chunks_done']}/{la['chunks']} chunks done); run the same command to continue")
+    log.info("%s: %d of %d episodes scored, %s: %s", cfg.name, la["episodes_scored"], la["episodes_total"], state,
+             {k: round(agg[k], 4) for k in PAPER_METRICS})
+
+
+# ---------------------------------------------------------------------------- a checkpoint's world
 
 
 # The entity counts of the world, as (config path, key of its count node): their padding fixes
@@ -499,7 +592,6 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     from uavlae.entry import command
-    from uavlae.factories import without_hydra_output
     from uavlae.llm.config import refuse_secret_overrides
 
     refuse_secret_overrides(sys.argv)  # before Hydra writes the command line down

@@ -25,8 +25,9 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from uavlae.errors import ConfigError
+from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 from uavlae.files import atomic_write
-from uavlae.factories import package_versions
+from uavlae.runlog import package_versions, without_hydra_output
 
 
 class DeterministicActor(nn.Module):
@@ -138,7 +139,6 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
     ``safety_filter``; mode not ``off``) as a :class:`Pilot`, else the actor alone."""
     from uavlae.checkpoint import load_checkpoint
     from uavlae.envs import make_env_config
-    from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 
     state, file = load_checkpoint(checkpoint)
     saved = OmegaConf.create(state["config"])
@@ -188,7 +188,5 @@ if __name__ == "__main__":
     import sys
 
     from uavlae.entry import command
-    from uavlae.factories import without_hydra_output
-
     sys.argv = without_hydra_output(sys.argv)
     command(main)

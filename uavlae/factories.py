@@ -1,63 +1,83 @@
-"""``make_*`` factories for the entry points, one per config group (docs/style.md rule 5).
+"""``make_*`` factories, one per config group, each fed by its own group (docs/style.md rule 5).
 
-``conf/env`` -> :func:`make_env`, ``conf/algo`` -> :func:`make_learner`, ``conf/advisor`` (+ the
-``heuristic`` and ``llm`` nodes) -> :func:`make_policy` / :func:`make_controller`,
-``conf/logger`` -> :func:`make_logger`, ``conf/trainer`` -> :func:`make_trainer_config`.
-Each validates its node with a pydantic model (unknown keys and out-of-range values are errors
-that name the field); the env, algo, heuristic and LLM models live with their code.
+``conf/env`` -> :func:`make_env`, ``conf/algo`` -> :func:`make_learner`, ``conf/advisor`` ->
+:func:`make_advisor` and the override around the actor, :func:`make_policy`; ``heuristic_kind``
+with the node of its numbers (:class:`HeuristicGroup`) -> :func:`make_heuristic`; ``conf/llm``
+-> :func:`make_llm_advisor`; ``controller`` -> :func:`make_controller`; ``conf/safety_filter``
+-> :func:`make_safety_filter`; ``conf/trainer`` -> :func:`make_trainer_config`. A factory that
+composes what another group builds (the override's heuristic and LLM) is handed that group by
+the entry point, which alone reads the composed config. Each validates its node with a pydantic
+model (unknown keys and out-of-range values are errors that name the field); the env, algo,
+heuristic, LLM, logger and experiment models live with their code.
+
+The run's metadata, logger and secret redaction are :mod:`uavlae.runlog`'s; they are imported
+here too, where the entry points have always found them.
 """
 
 from __future__ import annotations
 
-import importlib.metadata as metadata
-import json
-import os
-import subprocess
-import sys
-import uuid
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import torch
-from omegaconf import DictConfig, OmegaConf
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from omegaconf import DictConfig
+from pydantic import Field, model_validator
 
-from uavlae.algos import OFF_POLICY, make_learner as _make_learner
+from uavlae.algos import CONFIG_MAKERS, MAKERS, OFF_POLICY, make_learner as _make_learner
 from uavlae.envs import EnvConfig, UAVEnv, make_env_config
-from uavlae.errors import ConfigError
-from uavlae.files import dump_json  # noqa: F401  (re-exported: the entry points write JSON through it)
-from uavlae.policies.safety import make_safety_filter, make_safety_filter_config  # noqa: F401  (a factory of its own group)
-from uavlae.policies.student import StudentConfig
-from uavlae.validation import StrictModel, error_lines
+from uavlae.files import dump_json
+from uavlae.llm import LLMAdvisor, make_llm_config
+from uavlae.policies.advisor import Advisor, HeuristicAdvisor, LLMAdvisorAdapter, ScriptedAdvisor
+from uavlae.policies.greedy import GreedyPolicy, make_greedy_config
+from uavlae.policies.heuristic import HeuristicPolicy, make_heuristic_config
+from uavlae.policies.override import OverridePolicy
+from uavlae.policies.random import UniformRandomPolicy
+from uavlae.policies.safety import make_safety_filter, make_safety_filter_config  # the safety_filter group's
+from uavlae.policies.student import AmortizedAdvisor, StudentConfig
+from uavlae.runlog import (
+    NO_HYDRA_OUTPUT,
+    REPO_ROOT,
+    ExperimentConfig,
+    LoggerConfig,
+    RunLogger,
+    WandbConfig,
+    git_info,
+    log_evaluation,
+    make_experiment_config,
+    make_logger,
+    make_logger_config,
+    package_versions,
+    redact_secrets,
+    run_metadata,
+    trim_csv_scalars,
+    without_hydra_output,
+)
+from uavlae.validation import StrictModel, parse_model
+
+__all__ = [
+    # the factories, their configs and the groups they are fed
+    "AdvisorConfig", "CONF_DIR", "HeuristicGroup", "PACKAGE_DIR", "RunConfig", "TrainerConfig", "check_device",
+    "make_advisor", "make_advisor_config", "make_controller", "make_env", "make_heuristic", "make_learner",
+    "make_llm_advisor", "make_policy", "make_safety_filter", "make_safety_filter_config", "make_trainer_config",
+    "validate_config",
+    # uavlae.runlog's and uavlae.files', where the entry points first imported them
+    "ExperimentConfig", "LoggerConfig", "NO_HYDRA_OUTPUT", "REPO_ROOT", "RunLogger", "WandbConfig", "dump_json",
+    "git_info", "log_evaluation", "make_experiment_config", "make_logger", "make_logger_config", "package_versions",
+    "redact_secrets", "run_metadata", "trim_csv_scalars", "without_hydra_output",
+]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 # The configs ship inside the package, so an installed uavlae composes the same runs as a checkout.
 CONF_DIR = PACKAGE_DIR / "conf"
-# The checkout the package sits in (its parent folder); installed, this is site-packages, no checkout.
-REPO_ROOT = PACKAGE_DIR.parent
-
-
-def _container(cfg: Any) -> dict[str, Any]:
-    if cfg is None:
-        return {}
-    if isinstance(cfg, DictConfig):
-        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    if isinstance(cfg, BaseModel):
-        return cfg.model_dump()
-    return dict(cfg)
-
-
-def _validate(model: type[BaseModel], cfg: Any, group: str) -> Any:
-    if isinstance(cfg, model):
-        return cfg
-    try:
-        return model.model_validate(_container(cfg))
-    except ValidationError as e:
-        raise ConfigError(f"invalid {group} config:\n  " + "\n  ".join(error_lines(e, group))) from None
+# heuristic_kind -> the root node that holds that heuristic's numbers (conf/config.yaml)
+HEURISTIC_NODES = {"greedy": "greedy", "planner": "heuristic"}
+# the scripted advisor's and the student's generators, apart from the trigger's stream (seed)
+SCRIPTED_SEED_OFFSET = 7919
+STUDENT_SEED_OFFSET = 7907
 
 
 # ---------------------------------------------------------------------------- configs
+
 
 class TrainerConfig(StrictModel):
     """``conf/trainer``: the loop's numbers."""
@@ -138,34 +158,10 @@ class AdvisorConfig(StrictModel):
                              f"advisor.mode={self.mode!r} has neither")
         return self
 
-
-class WandbConfig(StrictModel):
-    mode: Literal["offline", "online", "disabled"]
-    project: str
-    entity: str | None
-    group: str | None
-    tags: tuple[str, ...]
-
-
-class LoggerConfig(StrictModel):
-    """``conf/logger``."""
-
-    csv: bool
-    wandb: WandbConfig
-    library_output: bool = False  # wandb's and torchrl's own messages on the terminal too (else the run's log only)
-
-
-class ExperimentConfig(StrictModel):
-    """The root ``experiment`` node: where a run sits in a sweep (conf/sweep/)."""
-
-    sweep: str | None
-    profile: str | None
-    root: str = Field(min_length=1)
-    point: str = Field(min_length=1)
-    method: str = Field(min_length=1)
-    tags: tuple[str, ...]
-    reuse: bool
-    eval_dir: str | None
+    @property
+    def needs_heuristic(self) -> bool:
+        """A heuristic acts: as the advisor, or where the advisor fails (``fallback``)."""
+        return self.kind == "heuristic" or self.fallback == "heuristic"
 
 
 class RunConfig(StrictModel):
@@ -184,25 +180,17 @@ class RunConfig(StrictModel):
 
 
 def make_trainer_config(cfg: Any) -> TrainerConfig:
-    return _validate(TrainerConfig, cfg, "trainer")
+    return parse_model(TrainerConfig, cfg, prefix="trainer", title="trainer")
 
 
 def make_advisor_config(cfg: Any) -> AdvisorConfig:
-    return _validate(AdvisorConfig, cfg, "advisor")
-
-
-def make_experiment_config(cfg: Any) -> ExperimentConfig:
-    return _validate(ExperimentConfig, cfg, "experiment")
-
-
-def make_logger_config(cfg: Any) -> LoggerConfig:
-    return _validate(LoggerConfig, cfg, "logger")
+    return parse_model(AdvisorConfig, cfg, prefix="advisor", title="advisor")
 
 
 def validate_config(cfg: DictConfig) -> None:
     """Validate every group of a composed config; ``ValueError`` names the bad field."""
     root = {k: cfg[k] for k in RunConfig.model_fields}
-    run = _validate(RunConfig, root, "config")
+    run = parse_model(RunConfig, root, prefix="config", title="config")
     known = set(RunConfig.model_fields) | {"env", "algo", "advisor", "llm", "logger", "trainer", "heuristic", "greedy",
                                            "experiment", "safety_filter"}
     unknown = sorted(set(cfg.keys()) - known - {"hydra"})
@@ -213,21 +201,16 @@ def validate_config(cfg: DictConfig) -> None:
     make_trainer_config(cfg.trainer)
     make_logger_config(cfg.logger)
     adv = make_advisor_config(cfg.advisor)
-    from uavlae.policies.greedy import make_greedy_config
-    from uavlae.policies.heuristic import make_heuristic_config
-
     make_heuristic_config(cfg.heuristic)
     make_greedy_config(cfg.greedy)
     make_safety_filter_config(cfg.get("safety_filter"))
     if run.controller == "learner":
         if cfg.get("algo") is None:
             raise ValueError("controller=learner needs an algo (algo=sac|sac_lag|ppo|ddpg|cpo|wang|theile|crossq)")
-        from uavlae.algos import MAKERS
-
         name = cfg.algo.name
         if name not in MAKERS:
             raise ValueError(f"algo.name must be one of {sorted(MAKERS)}, got {name!r}")
-        _algo_config(cfg.algo)
+        CONFIG_MAKERS[name](cfg.algo)
         if float(cfg.algo.get("clone_weight", 0.0) or 0.0) > 0 and adv.kind == "none":
             raise ValueError(
                 f"algo.clone_weight={cfg.algo.clone_weight} clones the executed advice, but advisor.kind is 'none': "
@@ -241,26 +224,7 @@ def validate_config(cfg: DictConfig) -> None:
     if run.controller == "llm" and adv.amortize:
         raise ValueError("advisor.amortize with controller=llm: the LLM alone is the LLM at every step, not a student")
     if cfg.get("llm") is not None:  # always: a key given in its place is refused before anything is written
-        from uavlae.llm import make_llm_config
-
         make_llm_config(cfg.llm)
-
-
-def _algo_config(cfg: Any) -> Any:
-    from uavlae.algos.crossq import make_crossq_config
-    from uavlae.algos.ddpg import make_ddpg_config
-    from uavlae.algos.ppo import make_ppo_config
-    from uavlae.algos.ppo_lagrangian import make_cpo_config
-    from uavlae.algos.sac import make_sac_config
-    from uavlae.algos.sac_lag import make_sac_lag_config
-    from uavlae.algos.theile import make_theile_config
-    from uavlae.algos.wang import make_wang_config
-
-    makers = {
-        "sac": make_sac_config, "sac_lag": make_sac_lag_config, "ddpg": make_ddpg_config, "ppo": make_ppo_config,
-        "cpo": make_cpo_config, "wang": make_wang_config, "theile": make_theile_config, "crossq": make_crossq_config,
-    }
-    return makers[cfg.name](cfg)
 
 
 # ---------------------------------------------------------------------------- env
@@ -304,57 +268,72 @@ def make_learner(algo_cfg: Any, env: UAVEnv) -> Any:
     return _make_learner(algo_cfg, obs_dim, env.action_spec, layout=env.layout)
 
 
-def make_heuristic(cfg: DictConfig, env_cfg: EnvConfig) -> Any:
+class HeuristicGroup(NamedTuple):
+    """The heuristic's config group: ``heuristic_kind`` and the node of that kind's numbers
+    (``greedy`` for the paper's greedy controller, ``heuristic`` for the planner)."""
+
+    kind: Literal["greedy", "planner"]
+    cfg: Any
+
+    @classmethod
+    def of(cls, cfg: DictConfig) -> "HeuristicGroup":
+        """The group in a composed config."""
+        return cls(cfg.heuristic_kind, cfg[HEURISTIC_NODES[cfg.heuristic_kind]])
+
+
+def make_heuristic(group: HeuristicGroup, env_cfg: EnvConfig) -> Any:
     """``heuristic_kind`` -> the paper's greedy controller (:class:`uavlae.policies.greedy.GreedyPolicy`,
     the ``greedy`` node) or the visibility-graph planner beyond the paper
     (:class:`uavlae.policies.heuristic.HeuristicPolicy`, the ``heuristic`` node)."""
-    if cfg.heuristic_kind == "greedy":
-        from uavlae.policies.greedy import GreedyPolicy
-
-        return GreedyPolicy(env_cfg, _container(cfg.greedy))
-    from uavlae.policies.heuristic import HeuristicPolicy
-
-    return HeuristicPolicy(env_cfg, _container(cfg.heuristic))
+    if group.kind == "greedy":
+        return GreedyPolicy(env_cfg, group.cfg)
+    return HeuristicPolicy(env_cfg, group.cfg)
 
 
-def make_llm_advisor(cfg: DictConfig) -> Any:
+def make_llm_advisor(llm_cfg: Any) -> LLMAdvisor:
     """``conf/llm`` -> :class:`uavlae.llm.LLMAdvisor` (it starts the local server on first use
     when ``llm.base_url`` is null; the API key is read from ``llm.api_key_env`` only)."""
-    from uavlae.llm import LLMAdvisor, make_llm_config
-
-    return LLMAdvisor(make_llm_config(cfg.llm))
+    return LLMAdvisor(make_llm_config(llm_cfg))
 
 
-def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | None = None) -> Any:
-    """``conf/advisor`` -> the collection policy: ``actor`` alone, or wrapped by
-    :class:`uavlae.policies.override.OverridePolicy` with an LLM or heuristic advisor."""
-    from uavlae.policies.override import HeuristicAdvisor, LLMAdvisorAdapter, OverridePolicy, ScriptedAdvisor
+def make_advisor(advisor_cfg: Any, env_cfg: EnvConfig, *, seed: int, heuristic: Any = None,
+                 llm_cfg: Any = None) -> Advisor | None:
+    """``conf/advisor`` -> who answers the triggered rows (None for ``kind: none``): ``heuristic``
+    (built by :func:`make_heuristic`) as an advisor, a scripted advisor, or the LLM of ``llm_cfg``
+    (``conf/llm``), through its student with ``amortize``."""
+    adv = make_advisor_config(advisor_cfg)
+    if adv.kind == "none":
+        return None
+    if adv.kind == "heuristic":
+        return HeuristicAdvisor(heuristic)
+    if adv.kind in ScriptedAdvisor.KINDS:
+        return ScriptedAdvisor(adv.kind, seed=seed + SCRIPTED_SEED_OFFSET)
+    llm = LLMAdvisorAdapter(make_llm_advisor(llm_cfg), env_cfg)
+    return AmortizedAdvisor(llm, adv.student, seed=seed + STUDENT_SEED_OFFSET) if adv.amortize else llm
 
-    adv = make_advisor_config(cfg.advisor)
+
+def make_policy(advisor_cfg: Any, actor: Any, env_cfg: EnvConfig, *, seed: int,
+                heuristic: HeuristicGroup | None = None, llm_cfg: Any = None) -> OverridePolicy:
+    """``conf/advisor`` -> the collection policy: ``actor`` wrapped by
+    :class:`uavlae.policies.override.OverridePolicy`, alone (``kind: none``) or with its advisor;
+    ``heuristic`` (its group) builds the heuristic that advises or acts where advice fails,
+    ``llm_cfg`` the LLM."""
+    adv = make_advisor_config(advisor_cfg)
     if adv.kind == "none":
         # wrapped all the same: one policy type for the collector (action_source, resume state)
-        return OverridePolicy(actor, None, mode="never", fallback="policy", seed=int(cfg.seed if seed is None else seed))
-
-    heuristic = make_heuristic(cfg, env_cfg) if (adv.kind == "heuristic" or adv.fallback == "heuristic") else None
-    seed = int(cfg.seed if seed is None else seed)
-    if adv.kind == "heuristic":
-        advisor: Any = HeuristicAdvisor(heuristic)
-    elif adv.kind in ScriptedAdvisor.KINDS:
-        advisor = ScriptedAdvisor(adv.kind, seed=seed + 7919)  # its own stream, apart from the trigger's
-    else:
-        advisor = LLMAdvisorAdapter(make_llm_advisor(cfg), env_cfg)
-        if adv.amortize:
-            from uavlae.policies.student import AmortizedAdvisor
-
-            advisor = AmortizedAdvisor(advisor, adv.student, seed=seed + 7907)  # apart from the trigger's stream
+        return OverridePolicy(actor, None, mode="never", fallback="policy", seed=seed)
+    if adv.needs_heuristic and heuristic is None:
+        raise ValueError(f"advisor.kind={adv.kind!r}, advisor.fallback={adv.fallback!r}: a heuristic acts, so "
+                         "make_policy needs its group (heuristic=HeuristicGroup.of(cfg))")
+    h = make_heuristic(heuristic, env_cfg) if adv.needs_heuristic else None
     return OverridePolicy(
         actor,
-        advisor,
+        make_advisor(adv, env_cfg, seed=seed, heuristic=h, llm_cfg=llm_cfg),
         mode=adv.mode,
         d_th=adv.d_th,
         fp=adv.fp,
         fallback=adv.fallback,
-        heuristic=heuristic,
+        heuristic=h,
         seed=seed,
         hold_steps=adv.hold_steps,
         max_calls=adv.max_calls,
@@ -364,263 +343,22 @@ def make_policy(cfg: DictConfig, actor: Any, env_cfg: EnvConfig, *, seed: int | 
     )
 
 
-def make_controller(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any = None) -> Any:
-    """The evaluation-only controllers: ``heuristic`` (the greedy baseline), ``llm`` (the
-    LLM at every step, the heuristic for failed answers when ``advisor.fallback=heuristic``)
-    or ``random`` (uniform in ``action_spec``'s box, seeded by ``cfg.seed``)."""
-    if cfg.controller == "random":
-        from uavlae.policies.random import UniformRandomPolicy
-
+def make_controller(controller: str, env_cfg: EnvConfig, *, seed: int, heuristic: HeuristicGroup | None = None,
+                    action_spec: Any = None, advisor_cfg: Any = None, llm_cfg: Any = None) -> Any:
+    """``controller`` -> the evaluation-only controllers: ``heuristic`` (the greedy baseline),
+    ``llm`` (the LLM of ``advisor_cfg`` and ``llm_cfg`` at every step, the heuristic for failed
+    answers when ``advisor.fallback=heuristic``) or ``random`` (uniform in ``action_spec``'s box,
+    seeded by ``seed``)."""
+    if controller == "random":
         if action_spec is None:
             raise ValueError("controller=random needs the env's action_spec")
-        return UniformRandomPolicy(action_spec, seed=int(cfg.seed))
-    heuristic = make_heuristic(cfg, env_cfg)
-    if cfg.controller == "heuristic":
-        return heuristic
-    if cfg.controller == "llm":
-        return make_policy(cfg, heuristic, env_cfg)
-    raise ValueError(f"controller must be heuristic, llm or random here, got {cfg.controller!r}")
-
-
-# ---------------------------------------------------------------------------- logging
-
-
-def git_info() -> dict[str, Any]:
-    """The commit of the code that ran, and whether tracked files differed from it. ``results/``
-    does not count: it holds outputs (a regenerated report), never code that runs. An installed
-    package has no checkout of its own: ``None`` for both, and the package's version (in
-    :func:`package_versions`) tells which code ran. A checkout counts only when it is the one
-    that holds this package, not a repository that happens to contain site-packages."""
-
-    def git(*args: str) -> str | None:
-        try:
-            out = subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10)
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return out.stdout.strip() if out.returncode == 0 else None
-
-    top = git("rev-parse", "--show-toplevel")
-    if top is None or Path(top).resolve() != Path(REPO_ROOT).resolve():
-        return {"commit": None, "dirty": None}
-    commit = git("rev-parse", "HEAD")
-    status = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
-    return {"commit": commit, "dirty": bool(status) if status is not None else None}
-
-
-def package_versions() -> dict[str, str | None]:
-    out: dict[str, str | None] = {"python": sys.version.split()[0]}
-    for name in ("uavlae", "torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "numpy", "pydantic", "wandb",
-                 "matplotlib", "xllamacpp"):
-        try:
-            out[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            out[name] = None
-    return out
-
-
-class RunLogger:
-    """torchrl's ``CSVLogger`` (always) and ``WandbLogger`` (unless disabled) behind one call.
-
-    Every metric goes with ``step`` = environment frames. ``state_dict`` holds what resuming
-    needs: the CSV logger's counters and the wandb run id. Closing it after the run has written
-    its ``final_metrics.json`` publishes them to the wandb run's summary, with the final and
-    baseline evaluations' per-episode records as tables (:func:`uavlae.runlog.publish_final`).
-    """
-
-    def __init__(self, loggers: Mapping[str, Any], run_id: str, run_dir: str | os.PathLike[str] | None = None):
-        self.loggers = dict(loggers)
-        self.run_id = run_id
-        self.run_dir = None if run_dir is None else Path(run_dir)
-
-    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
-        clean = {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
-        if not clean:
-            return
-        for lg in self.loggers.values():
-            lg.log_metrics(clean, step=int(step))
-
-    def log_images(self, images: Mapping[str, Path], step: int) -> None:
-        """PNG files (the evaluation trajectories) as wandb images at ``step``; the CSV logger
-        has them on disk already."""
-        lg = self.loggers.get("wandb")
-        if lg is None or not images:
-            return
-        import wandb
-
-        prefix = next(iter(images)).rpartition("/")[0]
-        payload: dict[str, Any] = {k: wandb.Image(str(p)) for k, p in images.items()}
-        payload[f"{prefix}/step" if prefix else "step"] = int(step)  # the group's step, as torchrl's logger keys it
-        lg.experiment.log(payload)
-
-    def log_hparams(self, cfg: Mapping[str, Any]) -> None:
-        for name, lg in self.loggers.items():
-            if name == "wandb":
-                lg.log_hparams(dict(cfg))
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"run_id": self.run_id, **{k: lg.state_dict() for k, lg in self.loggers.items()}}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        for k, lg in self.loggers.items():
-            if k in state:
-                lg.load_state_dict(state[k])
-
-    def close(self) -> None:
-        lg = self.loggers.get("wandb")
-        if lg is not None and self.run_dir is not None:
-            from uavlae.runlog import publish_final
-
-            publish_final(lg.experiment, self.run_dir)
-        for lg in self.loggers.values():
-            close = getattr(lg, "close", None)
-            if close is not None:
-                close()
-
-
-def trim_csv_scalars(log_dir: Path, max_step: int) -> None:
-    """Drop CSV rows logged after ``max_step`` (a resumed run logs those frames again)."""
-    for f in Path(log_dir).rglob("*.csv"):
-        lines = f.read_text().splitlines()
-        kept = [ln for ln in lines if ln and int(float(ln.split(",", 1)[0])) <= max_step]
-        if len(kept) != len(lines):
-            f.write_text("".join(ln + "\n" for ln in kept))
-
-
-# Commands that only read a run (evaluate, export) write next to the checkpoint: no Hydra run
-# folder, no .hydra/ copy and no log file in the working directory.
-NO_HYDRA_OUTPUT = ("hydra.output_subdir=null", "hydra.run.dir=.", "hydra/job_logging=stdout")
-
-
-def without_hydra_output(argv: list[str]) -> list[str]:
-    """``argv`` plus :data:`NO_HYDRA_OUTPUT` (a setting the user typed wins)."""
-    given = {a.split("=", 1)[0] for a in argv[1:]}
-    return argv + [o for o in NO_HYDRA_OUTPUT if o.split("=", 1)[0] not in given]
-
-
-def make_logger(cfg: DictConfig, run_dir: Path, run_id: str, hparams: Mapping[str, Any],
-                resume: bool = False) -> RunLogger:
-    """``conf/logger`` -> :class:`RunLogger`; CSV under ``<run_dir>/logs/scalars``, the wandb
-    run (offline by default) under ``<run_dir>/wandb`` with the resolved config, the git
-    commit and the package versions, grouped, named and tagged as :mod:`uavlae.runlog` says.
-    ``resume``: the wandb run of that id continues (the same run, its steps going on from the
-    checkpoint's frames)."""
-    from torchrl.record.loggers import CSVLogger
-
-    from uavlae.runlog import wandb_group, wandb_name, wandb_tags
-
-    lc = make_logger_config(cfg.logger)
-    ex = make_experiment_config(cfg.experiment)
-    loggers: dict[str, Any] = {}
-    if lc.csv:
-        loggers["csv"] = CSVLogger(exp_name="logs", log_dir=str(run_dir))
-    if lc.wandb.mode != "disabled":
-        from torchrl.record.loggers import WandbLogger
-
-        loggers["wandb"] = WandbLogger(
-            exp_name=wandb_name(ex.method, int(cfg.seed), ex),
-            offline=lc.wandb.mode == "offline",
-            # absolute: a wandb service this process joins (WANDB_SERVICE, inherited from a parent
-            # that runs wandb) resolves a relative folder against its own working directory
-            save_dir=str(Path(run_dir).resolve()),
-            id=run_id,
-            project=lc.wandb.project,
-            entity=lc.wandb.entity,
-            group=wandb_group(lc.wandb.group, ex),
-            tags=wandb_tags(lc.wandb.tags, ex, int(cfg.seed)),
-            job_type="train",
-            config=dict(hparams),
-            mode=lc.wandb.mode,
-            **({"resume": "allow"} if resume else {}),
-        )
-    return RunLogger(loggers, run_id, run_dir)
-
-
-def log_evaluation(cfg: Any, out_dir: Path, record: Mapping[str, Any] | None = None) -> None:
-    """One ``uavlae.evaluate`` (a point of a scenario sweep) as its own wandb run, in the group of
-    its invocation: the metrics at the checkpoint's frames, in the summary, the per-episode records
-    as a table and the trajectory pictures. ``record``: the evaluation's ``evaluation.json``
-    (default: read from ``out_dir``). Nothing when ``logger.wandb.mode=disabled``."""
-    from uavlae.runlog import episodes_table, numbers, wandb_group, wandb_name, wandb_tags
-
-    lc = make_logger_config(cfg.logger)
-    if lc.wandb.mode == "disabled":
-        return
-    if record is None:
-        record = json.loads((Path(out_dir) / "evaluation.json").read_text())
-    from torchrl.record.loggers import WandbLogger
-
-    ex = make_experiment_config(cfg.experiment)
-    spec = record["spec"]
-    method, seed, frames = str(spec["method"]), int(spec["seed"]), int(spec.get("frames") or 0)
-    logger = WandbLogger(
-        exp_name=wandb_name(method, seed, ex),
-        offline=lc.wandb.mode == "offline",
-        save_dir=str(Path(out_dir).resolve()),  # absolute, as make_logger's: a joined service has its own cwd
-        id=f"eval-{method}-{uuid.uuid4().hex[:10]}"[:64],
-        project=lc.wandb.project,
-        entity=lc.wandb.entity,
-        group=wandb_group(lc.wandb.group, ex),
-        tags=wandb_tags(lc.wandb.tags, ex, seed, kind="evaluate", method=method),
-        job_type="evaluate",
-        config={k: record.get(k) for k in ("spec", "experiment", "env", "meta", "eval_set_file", "n_scenarios")},
-        mode=lc.wandb.mode,
-    )
-    try:
-        metrics = numbers(record["metrics"], "eval/")
-        logger.log_metrics(metrics, step=frames)
-        payload: dict[str, Any] = {}
-        if (Path(out_dir) / "episodes.csv").is_file():
-            payload["eval/episodes"] = episodes_table(Path(out_dir) / "episodes.csv")
-        import wandb
-
-        for p in sorted(Path(out_dir).glob("trajectory_*.png")):
-            payload[f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}"] = wandb.Image(str(p))
-        if payload:
-            logger.experiment.log(payload)
-        logger.experiment.summary.update({**metrics, "frames": frames, "wall_s": record.get("wall_s")})
-    finally:
-        logger.close()
-
-
-def run_metadata(cfg_dict: Mapping[str, Any]) -> dict[str, Any]:
-    """The commit, the package versions, the machine and the command: for a Hydra job (a sweep's too, whose
-    worker's argv is the launcher's) the one command that reruns this run alone."""
-    import shlex
-
-    from uavlae.machine import describe_machine
-
-    meta: dict[str, Any] = {"git": git_info(), "packages": package_versions(), "machine": describe_machine(),
-                            "argv": list(sys.argv), "pid": os.getpid()}
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        hc = HydraConfig.get()
-        task = list(hc.overrides.task)
-        module = "uavlae.evaluate" if "evaluate" in str(hc.job.name) else "uavlae.train"
-        meta["overrides"] = task
-        meta["command"] = shlex.join(["python", "-m", module, *task])
-    except ValueError:  # not a Hydra job (the tests call run() in-process)
-        pass
-    return meta
-
-
-def redact_secrets(cfg_dict: dict[str, Any]) -> dict[str, Any]:
-    """Refuse to write a config that holds the LLM API key itself (only its variable's name
-    may appear): any string equal to the key's value becomes ``"***"``."""
-    name = (cfg_dict.get("llm") or {}).get("api_key_env")
-    secret = os.environ.get(name) if name else None
-    if not secret:
-        return cfg_dict
-
-    def walk(x: Any) -> Any:
-        if isinstance(x, dict):
-            return {k: walk(v) for k, v in x.items()}
-        if isinstance(x, list):
-            return [walk(v) for v in x]
-        if isinstance(x, str) and secret in x:
-            return x.replace(secret, "***")
-        return x
-
-    return walk(cfg_dict)
-
-
+        return UniformRandomPolicy(action_spec, seed=seed)
+    if heuristic is None:
+        raise ValueError(f"controller={controller!r} flies a heuristic: make_controller needs its group "
+                         "(heuristic=HeuristicGroup.of(cfg))")
+    acting = make_heuristic(heuristic, env_cfg)
+    if controller == "heuristic":
+        return acting
+    if controller == "llm":
+        return make_policy(advisor_cfg, acting, env_cfg, seed=seed, heuristic=heuristic, llm_cfg=llm_cfg)
+    raise ValueError(f"controller must be heuristic, llm or random here, got {controller!r}")

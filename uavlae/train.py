@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sys
 import time
 import uuid
@@ -51,21 +50,26 @@ from uavlae.checkpoint import (LAST, checkpoint_dir, resolve_checkpoint, rng_sta
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.evaluate import Evaluation, Flight, eval_set_path, load_or_make_eval_set, make_evaluation, make_flyer
+from uavlae.evaluate import (  # noqa: F401  (evaluate_controller: re-exported, the controllers' evaluation lived here)
+    Evaluation,
+    eval_set_path,
+    evaluate_controller,
+    fly_baselines,
+    load_or_make_eval_set,
+    make_evaluation,
+    prefixed,
+    trajectory_images,
+)
 from uavlae.factories import (
     CONF_DIR,
+    HeuristicGroup,
     dump_json,
     make_env,
-    make_heuristic,
     make_learner,
-    make_logger,
     make_policy,
     make_safety_filter,
     make_trainer_config,
     check_device,
-    redact_secrets,
-    run_metadata,
-    trim_csv_scalars,
     validate_config,
 )
 from uavlae.entry import ERROR_FILE, recorded, refused_in_job
@@ -73,13 +77,11 @@ from uavlae.errors import ConfigError
 from uavlae.files import atomic_write, finite, train_eval_dir
 from uavlae.lifecycle import (RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, StopRequested, flatten_keys,
                               lock_name, plan)
-from uavlae.policies.override import OverridePolicy
-from uavlae.policies.random import UniformRandomPolicy
 from uavlae.policies.safety import FilteredPolicy, SafetyFilter
 from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import progress_for
 from uavlae.rules import run_problems
-from uavlae.runlog import route_library_output
+from uavlae.runlog import make_logger, redact_secrets, route_library_output, run_metadata, trim_csv_scalars
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
 log = logging.getLogger(__name__)
@@ -97,14 +99,6 @@ REPLAY_KEYS = (
 
 def _resolved(cfg: DictConfig) -> dict[str, Any]:
     return redact_secrets(OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
-
-
-def _prefixed(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
-    out = {}
-    for k, v in metrics.items():
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v)):
-            out[f"{prefix}/{k}"] = float(v)
-    return out
 
 
 def command_line_keys(cfg: DictConfig, overrides: Sequence[str] | None = None) -> list[str]:
@@ -289,9 +283,9 @@ class Training:
         elapsed = time.perf_counter() - self.t_start
         advised = self.cfg.advisor.kind != "none"
         self.logger.log_metrics({
-            **_prefixed("train", self.train_logs), **_prefixed("episode", episodes),
-            **(_prefixed("override", self.collector.override_stats(reset=True)) if advised else {}),
-            **(_prefixed("safety", self.collector.safety_stats.snapshot(reset=True)) if self.collector.safety else {}),
+            **prefixed("train", self.train_logs), **prefixed("episode", episodes),
+            **(prefixed("override", self.collector.override_stats(reset=True)) if advised else {}),
+            **(prefixed("safety", self.collector.safety_stats.snapshot(reset=True)) if self.collector.safety else {}),
             "time/fps": (self.frames - self.frames_start) / max(elapsed, 1e-9), "time/update_s": update_s,
             "time/update_overlap_s": overlap_s, "train/updates": c["updates"], "train/episodes": c["episodes"],
             "train/replay_size": len(self.replay) if self.replay is not None else 0,
@@ -309,9 +303,9 @@ class Training:
         except StopRequested:  # thrown away: the RNGs as they were, so a resume evaluates from the same state
             set_rng_state(before)
             raise
-        self.logger.log_metrics({**_prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
+        self.logger.log_metrics({**prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
                                  "eval/train_wall_s": float(self.counters["wall_s"])}, step=self.frames)
-        self.logger.log_images(_trajectory_images(out), step=self.frames)
+        self.logger.log_images(trajectory_images(out), step=self.frames)
         self.counters["last_eval_frames"] = self.frames
         every = self.tr.eval_every_frames or self.tr.total_frames
         self.counters["next_eval"] = (self.frames // every + 1) * every
@@ -329,7 +323,7 @@ class Training:
             flight = self.evaluation.fly(pilot, out, title=f"{title}, filtered")
             self.last_eval = {**flight.metrics, **flight.stats}
             alone = self.evaluation.fly(self.learner.actor, out / "actor_alone", title=f"{title}, actor alone")
-            self.last_eval.update(_prefixed("actor", alone.metrics))
+            self.last_eval.update(prefixed("actor", alone.metrics))
 
     def checkpoint(self, final: bool = False) -> Path:
         """An atomic checkpoint at this batch boundary (exact resume). A finished run keeps its
@@ -429,7 +423,7 @@ def _finish(t: Training) -> dict[str, Any]:
         t.evaluate()
     final = {
         "frames": t.frames, "episodes": c["episodes"], "updates": c["updates"], "wall_s": round(float(c["wall_s"]), 1),
-        **_prefixed("eval", t.last_eval),
+        **prefixed("eval", t.last_eval),
         "actor_param_sum": float(sum(p.detach().double().abs().sum() for p in t.learner.actor.parameters())),
     }
     advised = cfg.advisor.kind != "none"
@@ -437,17 +431,17 @@ def _finish(t: Training) -> dict[str, Any]:
     cost = t.policy.cost() if advised else {}
     totals = t.policy.run_totals() if advised else None
     if t.collector.safety is not None:
-        final.update(_prefixed("safety/train", t.collector.safety_totals.snapshot()))
+        final.update(prefixed("safety/train", t.collector.safety_totals.snapshot()))
     advised_eval = None
     if advised:
-        final.update(_prefixed("override", _deterministic_counts(totals)))  # type: ignore[arg-type]
-        final.update(_prefixed("cost", cost))
+        final.update(prefixed("override", _deterministic_counts(totals)))  # type: ignore[arg-type]
+        final.update(prefixed("cost", cost))
         if tr.eval_with_advisor:
             final.update(_advised_evaluation(t))
             advised_eval = _advised_eval_counts(tr, final, totals, t.policy.run_totals())  # type: ignore[arg-type]
     t_base = time.perf_counter()
     if tr.baselines:
-        final.update(_baselines(cfg, t.evaluation, t.run_dir))
+        final.update(fly_baselines(cfg, t.evaluation, t.run_dir))
     dump_json(t.run_dir / "final_metrics.json", final)
     train_s = c.get("train_s", 0.0)
     write_summary(t.run_dir, {
@@ -492,7 +486,7 @@ def _advised_evaluation(t: Training) -> dict[str, float]:
     # where it asked the same before), so its share here is the evaluation's own cost
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
             "advised", "budget_skipped", "frames", "source/llm", "source/student", "source/fallback")
-    return {**_prefixed("advised", flight.metrics), **_prefixed("advised/override", {k: flight.stats[k] for k in keep})}
+    return {**prefixed("advised", flight.metrics), **prefixed("advised/override", {k: flight.stats[k] for k in keep})}
 
 
 def _advised_eval_counts(tr: Any, final: dict[str, Any], before: dict[str, Any],
@@ -506,21 +500,6 @@ def _advised_eval_counts(tr: Any, final: dict[str, Any], before: dict[str, Any],
         out[f"llm_{k}"] = float(after.get(f"advisor/{k}", 0) or 0) - float(before.get(f"advisor/{k}", 0) or 0)
     return out
 
-
-def _baselines(cfg: DictConfig, evaluation: Evaluation, run_dir: Path) -> dict[str, float]:
-    """The greedy heuristic and a uniform-random policy on the same evaluation set."""
-    env_cfg = evaluation.evaluator.env_cfg
-    policies = {"heuristic": make_heuristic(cfg, env_cfg),
-                "random": UniformRandomPolicy(evaluation.evaluator.env.action_spec, seed=int(cfg.trainer.eval_seed))}
-    out: dict[str, float] = {}
-    for name, policy in policies.items():
-        flight = evaluation.fly(policy, run_dir / "eval" / f"baseline_{name}", title=name)
-        out.update(_prefixed(f"baseline/{name}", flight.metrics))
-    return out
-
-
-def _trajectory_images(eval_dir: Path) -> dict[str, Path]:
-    return {f"eval/trajectory_{p.stem.rsplit('_', 1)[-1]}": p for p in sorted(eval_dir.glob("trajectory_*.png"))}
 
 
 # ---------------------------------------------------------------------------- building a run
@@ -536,7 +515,8 @@ def build_training(cfg: DictConfig, run_dir: Path, logger: Any, evaluation: Eval
     env = make_env(cfg.env, tr.env_batch_size, seed=seed, device=cfg.device, compile_step=tr.compile_env)
     learner = make_learner(cfg.algo, env)
     env_cfg = make_env_config(cfg.env)
-    policy = make_policy(cfg, learner.behaviour, env_cfg)
+    policy = make_policy(cfg.advisor, learner.behaviour, env_cfg, seed=seed, heuristic=HeuristicGroup.of(cfg),
+                         llm_cfg=cfg.llm)
     safety = make_safety_filter(cfg.get("safety_filter"), env_cfg)
     in_training = safety is not None and safety.cfg.mode == "train_and_deploy"
     replay = make_replay_buffer(tr.replay_capacity, tr.batch_size, cfg.device, seed=seed) if learner.off_policy else None
@@ -643,59 +623,6 @@ def _stop_message(cfg: DictConfig, run_dir: Path, signum: int) -> str:
     if cfg.controller == "learner" and (checkpoint_dir(run_dir) / LAST).is_file():
         return f"stopped by signal {signum}; continue from the last checkpoint with: python -m uavlae.train resume={run_dir}"
     return f"stopped by signal {signum} before there was anything to keep; run the same command again to start over"
-
-
-def evaluate_controller(cfg: DictConfig, evaluation: Evaluation, logger: Any, run_dir: Path,
-                        stop: GracefulStop | None = None) -> dict[str, Any]:
-    """``heuristic`` / ``random`` / ``llm``: no learner; the controller flies the evaluation set
-    (the LLM chunk by chunk under its call budget, resumable: :mod:`uavlae.llm_alone`; a run
-    paused by its budget, or by a stop, writes its final metrics with ``eval/complete`` 0, and
-    the same command continues it)."""
-    env_cfg = evaluation.evaluator.env_cfg
-    controller = make_flyer(cfg, env_cfg, evaluation.evaluator.env.action_spec)
-    out = train_eval_dir(run_dir, 0)
-    t0 = time.perf_counter()
-    try:
-        if stop is not None:
-            start_llm(controller, stop)
-        flight = evaluation.fly(controller, out, title=str(cfg.name))
-        totals = controller.run_totals() if cfg.controller == "llm" else None
-    finally:
-        if isinstance(controller, OverridePolicy):
-            controller.close()  # the LLM's client, and the local server it started
-    metrics = {**_prefixed("eval", flight.metrics), **_prefixed("override", flight.stats),
-               "time/eval_s": time.perf_counter() - t0}
-    la = flight.llm_alone
-    if la is not None:
-        progress = {k: la[k] for k in ("complete", "episodes_scored", "episodes_total", "chunks_done", "chunks")}
-        metrics.update({**_prefixed("eval", {k: int(v) for k, v in progress.items()}), **_prefixed("llm", la["cost"]),
-                        "time/eval_s": la["cost"]["wall_s"]})
-    logger.log_metrics(metrics, step=0)
-    logger.log_images(_trajectory_images(out), step=0)
-    final = {"frames": 0, **metrics}
-    dump_json(run_dir / "final_metrics.json", final)
-    write_summary(run_dir, {
-        "name": str(cfg.name), "controller": str(cfg.controller), "run_dir": str(run_dir), "frames": 0,
-        "eval_episodes": la["episodes_scored"] if la else len(evaluation.scenarios), "metrics": {str(cfg.name): flight.metrics},
-        "advisor_kind": str(cfg.advisor.kind), "override": totals, "pictures": pictures(run_dir, 0),
-        "llm_alone": None if la is None else {k: v for k, v in la.items() if k != "records"},
-    })
-    _log_controller(cfg, flight)
-    if stop is not None and stop.requested and la is not None and not la["complete"]:
-        raise RunStopped(f"stopped by signal {stop.signum}: the LLM alone's progress is saved (eval/complete 0); the "
-                         "same command continues it", int(stop.signum))
-    return final
-
-
-def _log_controller(cfg: DictConfig, flight: Flight) -> None:
-    agg, la = flight.metrics, flight.llm_alone
-    if la is None:
-        log.info("%s: %s", cfg.name, {k: round(agg[k], 4) for k in PAPER_METRICS})
-        return
-    state = "complete" if la["complete"] else (
-        f"paused by the call budget ({la['chunks_done']}/{la['chunks']} chunks done); run the same command to continue")
-    log.info("%s: %d of %d episodes scored, %s: %s", cfg.name, la["episodes_scored"], la["episodes_total"], state,
-             {k: round(agg[k], 4) for k in PAPER_METRICS})
 
 
 def reuse_state(cfg: DictConfig) -> tuple[str, dict[str, Any] | None]:

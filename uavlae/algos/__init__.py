@@ -14,17 +14,23 @@ from typing import Any, Protocol
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from uavlae.algos.crossq import CrossQ, CrossQConfig, make_crossq
-from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg
-from uavlae.algos.ppo import PPO, PPOConfig, make_ppo
-from uavlae.algos.ppo_lagrangian import CPOConfig, LagrangeMultiplier, PPOLagrangian, make_ppo_lagrangian
-from uavlae.algos.sac import SAC, SACConfig, make_sac
-from uavlae.algos.sac_lag import SACLag, SACLagConfig, make_sac_lag
-from uavlae.algos.theile import Theile, TheileConfig, make_theile
-from uavlae.algos.wang import Wang, WangConfig, make_wang
+from uavlae.algos.crossq import CrossQ, CrossQConfig, make_crossq, make_crossq_config
+from uavlae.algos.ddpg import DDPG, DDPGConfig, make_ddpg, make_ddpg_config
+from uavlae.algos.ppo import PPO, PPOConfig, make_ppo, make_ppo_config
+from uavlae.algos.ppo_lagrangian import (
+    CPOConfig, LagrangeMultiplier, PPOLagrangian, make_cpo_config, make_ppo_lagrangian,
+)
+from uavlae.algos.sac import SAC, SACConfig, make_sac, make_sac_config
+from uavlae.algos.sac_lag import SACLag, SACLagConfig, make_sac_lag, make_sac_lag_config
+from uavlae.algos.theile import Theile, TheileConfig, make_theile, make_theile_config
+from uavlae.algos.wang import Wang, WangConfig, make_wang, make_wang_config
 
 MAKERS = {"sac": make_sac, "sac_lag": make_sac_lag, "ddpg": make_ddpg, "ppo": make_ppo, "cpo": make_ppo_lagrangian,
           "wang": make_wang, "theile": make_theile, "crossq": make_crossq}
+# each learner's config alone (validated before anything is built)
+CONFIG_MAKERS = {"sac": make_sac_config, "sac_lag": make_sac_lag_config, "ddpg": make_ddpg_config,
+                 "ppo": make_ppo_config, "cpo": make_cpo_config, "wang": make_wang_config,
+                 "theile": make_theile_config, "crossq": make_crossq_config}
 # cut the observation into entities (wang) or find its maps (theile): need the env's ObservationLayout
 NEEDS_LAYOUT = frozenset({"wang", "theile"})
 OFF_POLICY = frozenset({"sac", "sac_lag", "ddpg", "crossq"})
@@ -62,6 +68,7 @@ def make_learner(cfg: Any, obs_dim: int, action_spec: TensorSpec, layout: Any = 
 
 
 __all__ = [
+    "CONFIG_MAKERS",
     "CPOConfig",
     "CrossQ",
     "CrossQConfig",

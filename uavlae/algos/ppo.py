@@ -109,19 +109,18 @@ def _check_on_policy_batch(batch: TensorDictBase, keys: tuple[str, ...]) -> None
         raise KeyError(f"the on-policy batch lacks {missing}; collect it with make_ppo_actor's policy")
 
 
-@dataclass
-class PPO:
-    """The PPO learner. Build it with :func:`make_ppo`."""
-
-    cfg: PPOConfig
-    actor: ProbabilisticActor  # the acting policy (writes "action_log_prob")
-    critic: ValueOperator
-    loss: ClipPPOLoss
-    gae: GAE
-    optimisers: dict[str, torch.optim.Optimizer]
-    num_updates: int = 0
+class OnPolicy:
+    """What every on-policy learner (ppo, cpo, wang, theile) shares, on top of its ``cfg``,
+    ``actor``, ``loss``, ``optimisers`` and ``num_updates``: it learns from the rollout its own
+    sampling actor collects, no schedule follows training progress, a minibatch is one clipped-PPO
+    step, and the checkpoint holds its parts (:meth:`_parts`) and its update count."""
 
     off_policy: ClassVar[bool] = False
+    cfg: Any
+    actor: ProbabilisticActor
+    loss: ClipPPOLoss
+    optimisers: dict[str, torch.optim.Optimizer]
+    num_updates: int
 
     @property
     def behaviour(self) -> ProbabilisticActor:
@@ -134,6 +133,37 @@ class PPO:
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)
 
+    def _counted(self, logs: dict[str, float], batch_stats: dict[str, Any]) -> dict[str, float]:
+        """``logs`` of one update, with the batch's statistics and the update counted."""
+        self.num_updates += 1
+        logs.update(to_floats(batch_stats))
+        logs["num_updates"] = float(self.num_updates)
+        return logs
+
+    def _parts(self) -> dict[str, Any]:
+        """What the checkpoint holds (its state_dict each)."""
+        return {"loss": self.loss, "optimisers": self.optimisers}
+
+    def state_dict(self) -> dict[str, Any]:
+        return parts_state_dict(self._parts(), self.num_updates)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.num_updates = load_parts_state_dict(self._parts(), state)
+
+
+@dataclass
+class PPO(OnPolicy):
+    """The PPO learner. Build it with :func:`make_ppo`. Its checkpoint: actor and critic (in
+    ``loss``), optimisers, counters; PPO has no target nets."""
+
+    cfg: PPOConfig
+    actor: ProbabilisticActor  # the acting policy (writes "action_log_prob")
+    critic: ValueOperator
+    loss: ClipPPOLoss
+    gae: GAE
+    optimisers: dict[str, torch.optim.Optimizer]
+    num_updates: int = 0
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One PPO update on an on-policy batch ``[*B, T]`` (module doc lists its keys)."""
         _check_on_policy_batch(batch, ("observation", "action", "action_log_prob", ("next", "reward")))
@@ -141,29 +171,12 @@ class PPO:
             batch = self.gae(batch.copy())
         flat = batch.select(*PPO_TRAIN_KEYS).reshape(-1)
         logs = run_epochs(flat, self.cfg.epochs, self.cfg.minibatch_size, self._step)
-        self.num_updates += 1
-        logs.update(
-            to_floats(
-                {
-                    "reward_mean_step": batch["next", "reward"].mean(),
-                    "advantage_mean": batch["advantage"].mean(),
-                    "advantage_std": batch["advantage"].std(),
-                    "value_target_mean": batch["value_target"].mean(),
-                }
-            )
-        )
-        logs["num_updates"] = float(self.num_updates)
-        return logs
-
-    def _parts(self) -> dict[str, Any]:
-        return {"loss": self.loss, "optimisers": self.optimisers}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Actor and critic (in ``loss``), optimisers, counters. PPO has no target nets."""
-        return parts_state_dict(self._parts(), self.num_updates)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.num_updates = load_parts_state_dict(self._parts(), state)
+        return self._counted(logs, {
+            "reward_mean_step": batch["next", "reward"].mean(),
+            "advantage_mean": batch["advantage"].mean(),
+            "advantage_std": batch["advantage"].std(),
+            "value_target_mean": batch["value_target"].mean(),
+        })
 
 
 def make_clip_ppo_loss(

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import torch
 from pydantic import Field
@@ -52,16 +52,8 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import (
-    StrictConfig,
-    adam,
-    load_parts_state_dict,
-    optimiser_step,
-    parse_config,
-    parts_state_dict,
-    to_floats,
-)
-from uavlae.algos.ppo import PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss
+from uavlae.algos.common import StrictConfig, adam, optimiser_step, parse_config, to_floats
+from uavlae.algos.ppo import PPO_TRAIN_KEYS, OnPolicy, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss
 from uavlae.policies.networks import make_ppo_actor, make_value_critic
 
 CPO_TRAIN_KEYS = (*PPO_TRAIN_KEYS, "cost_advantage", "cost_value_target", "lagrangian_advantage")
@@ -216,8 +208,10 @@ class EpisodeCostTracker:
 
 
 @dataclass
-class PPOLagrangian:
-    """PPO-Lagrangian ("CPO" in the paper). Build it with :func:`make_ppo_lagrangian`."""
+class PPOLagrangian(OnPolicy):
+    """PPO-Lagrangian ("CPO" in the paper). Build it with :func:`make_ppo_lagrangian`. Its
+    checkpoint: actor and reward critic (in ``loss``), cost critic, optimisers, the multiplier and
+    the open episodes' running costs."""
 
     cfg: CPOConfig
     actor: ProbabilisticActor
@@ -231,16 +225,6 @@ class PPOLagrangian:
     optimisers: dict[str, torch.optim.Optimizer]
     num_updates: int = 0
     last_cost: float | None = None  # the latest measured J_c (logged while no episode ends)
-
-    off_policy: ClassVar[bool] = False
-
-    @property
-    def behaviour(self) -> ProbabilisticActor:
-        """What acts while collecting: the actor, sampling (it writes the log-probabilities)."""
-        return self.actor
-
-    def anneal(self, frames: int) -> None:
-        """Schedules that follow training progress: none."""
 
     def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self.loss(mb)
@@ -315,30 +299,24 @@ class PPOLagrangian:
             batch["lagrangian_advantage"] = (adv_r - lam * adv_c) / (1.0 + lam)
         flat = batch.select(*CPO_TRAIN_KEYS).reshape(-1)
         logs = self._epochs_with_kl_stop(flat)
-        self.num_updates += 1
         cost = batch["next", "cost"]
-        logs.update(
-            to_floats(
-                {
-                    "lambda": lam,
-                    "episodes_measured": float(finished.numel()) if episode_cost is None else 0.0,
-                    "cost_limit": self.cfg.cost_limit,
-                    "cost_mean_step": cost.mean(),
-                    "cost_rate": (cost > 0).float().mean(),
-                    "cost_value_target_mean": batch["cost_value_target"].mean(),
-                    "cost_advantage_std": batch["cost_advantage"].std(),
-                    "reward_mean_step": batch["next", "reward"].mean(),
-                    "advantage_mean": batch["advantage"].mean(),
-                    "value_target_mean": batch["value_target"].mean(),
-                }
-            )
-        )
+        stats = {
+            "lambda": lam,
+            "episodes_measured": float(finished.numel()) if episode_cost is None else 0.0,
+            "cost_limit": self.cfg.cost_limit,
+            "cost_mean_step": cost.mean(),
+            "cost_rate": (cost > 0).float().mean(),
+            "cost_value_target_mean": batch["cost_value_target"].mean(),
+            "cost_advantage_std": batch["cost_advantage"].std(),
+            "reward_mean_step": batch["next", "reward"].mean(),
+            "advantage_mean": batch["advantage"].mean(),
+            "value_target_mean": batch["value_target"].mean(),
+        }
         if self.last_cost is not None:  # nothing to report before the first episode ends
-            logs["episode_cost"] = self.last_cost
-            logs["cost_violation"] = self.last_cost - self.cfg.cost_limit
-        logs["episode_cost_given"] = float(episode_cost is not None)
-        logs["num_updates"] = float(self.num_updates)
-        return logs
+            stats["episode_cost"] = self.last_cost
+            stats["cost_violation"] = self.last_cost - self.cfg.cost_limit
+        stats["episode_cost_given"] = float(episode_cost is not None)
+        return self._counted(logs, stats)
 
     def _parts(self) -> dict[str, Any]:
         return {
@@ -350,14 +328,10 @@ class PPOLagrangian:
         }
 
     def state_dict(self) -> dict[str, Any]:
-        """Actor and reward critic (in ``loss``), cost critic, optimisers, the multiplier and
-        the open episodes' running costs."""
-        state = parts_state_dict(self._parts(), self.num_updates)
-        state["last_cost"] = self.last_cost
-        return state
+        return {**super().state_dict(), "last_cost": self.last_cost}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.num_updates = load_parts_state_dict(self._parts(), state)
+        super().load_state_dict(state)
         self.last_cost = state["last_cost"]
 
 

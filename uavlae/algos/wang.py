@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import torch
 from pydantic import Field
@@ -37,10 +37,8 @@ from torchrl.modules import NormalParamExtractor, ProbabilisticActor, TanhNormal
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from uavlae.algos.common import StrictConfig, adam, load_parts_state_dict, parse_config, parts_state_dict, to_floats
-from uavlae.algos.ppo import (
-    PPO_TRAIN_KEYS, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, ppo_minibatch_step, run_epochs,
-)
+from uavlae.algos.common import StrictConfig, adam, parse_config
+from uavlae.algos.ppo import PPO_TRAIN_KEYS, OnPolicy, PPOConfig, _check_on_policy_batch, make_clip_ppo_loss, run_epochs
 from uavlae.envs.world import ObservationLayout
 from uavlae.policies.entity_transformer import EntityHead
 from uavlae.policies.networks import SCALE_AT_ZERO, SCALE_LB, SCALE_MIN, action_bounds
@@ -134,8 +132,9 @@ class RND(nn.Module):
 
 
 @dataclass
-class Wang:
-    """The ``wang`` learner. Build it with :func:`make_wang`."""
+class Wang(OnPolicy):
+    """The ``wang`` learner. Build it with :func:`make_wang`. Its checkpoint: actor and critic (in
+    ``loss``), RND target and predictor, optimisers, the running std."""
 
     cfg: WangConfig
     actor: ProbabilisticActor
@@ -147,19 +146,6 @@ class Wang:
     rnd_optimiser: torch.optim.Optimizer
     intrinsic_std: RunningStd = field(default_factory=RunningStd)
     num_updates: int = 0
-
-    off_policy: ClassVar[bool] = False
-
-    @property
-    def behaviour(self) -> ProbabilisticActor:
-        """What acts while collecting: the actor, sampling (it writes the log-probabilities)."""
-        return self.actor
-
-    def anneal(self, frames: int) -> None:
-        """Schedules that follow training progress: none."""
-
-    def _step(self, mb: TensorDictBase) -> dict[str, torch.Tensor]:
-        return ppo_minibatch_step(self.loss, self.optimisers, self.cfg.max_grad_norm, mb)
 
     def intrinsic_reward(self, next_obs: torch.Tensor, update_stats: bool = True) -> torch.Tensor:
         """(e - running mean(e)) / running std(e), ``[..., 1]`` (the stats first take in this batch)."""
@@ -194,31 +180,17 @@ class Wang:
         flat = work.select(*PPO_TRAIN_KEYS).reshape(-1)
         logs = run_epochs(flat, self.cfg.epochs, self.cfg.minibatch_size, self._step)
         logs["loss_rnd"] = self._train_rnd(next_obs)
-        self.num_updates += 1
-        logs.update(
-            to_floats(
-                {
-                    "reward_mean_step": batch["next", "reward"].mean(),
-                    "intrinsic_reward_mean": r_int.mean(),
-                    "intrinsic_std": self.intrinsic_std.std,
-                    "advantage_mean": work["advantage"].mean(),
-                    "value_target_mean": work["value_target"].mean(),
-                }
-            )
-        )
-        logs["num_updates"] = float(self.num_updates)
-        return logs
+        return self._counted(logs, {
+            "reward_mean_step": batch["next", "reward"].mean(),
+            "intrinsic_reward_mean": r_int.mean(),
+            "intrinsic_std": self.intrinsic_std.std,
+            "advantage_mean": work["advantage"].mean(),
+            "value_target_mean": work["value_target"].mean(),
+        })
 
     def _parts(self) -> dict[str, Any]:
         return {"loss": self.loss, "rnd": self.rnd, "optimisers": {**self.optimisers, "rnd": self.rnd_optimiser},
                 "intrinsic_std": self.intrinsic_std}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Actor and critic (in ``loss``), RND target and predictor, optimisers, the running std."""
-        return parts_state_dict(self._parts(), self.num_updates)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.num_updates = load_parts_state_dict(self._parts(), state)
 
 
 def make_wang(cfg: WangConfig | Any, obs_dim: int, action_spec: TensorSpec, layout: ObservationLayout | None = None) -> Wang:

@@ -27,7 +27,6 @@ tuning runs) and its method (the ``+exp``, or the learning aid it isolates).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
@@ -35,6 +34,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from uavlae.experiments.reporting import read_json, read_rows, read_scalar, write_csv
 from uavlae.files import atomic_write, portable, train_eval_dir
 
 EPISODE_COLUMNS = ("data_collected", "data_total", "collided", "landed", "rz_speeding", "energy_used", "energy_total",
@@ -53,23 +53,6 @@ CURVE_SCALARS = (("eval/DCR", "DCR"), ("eval/SLR", "SLR"), ("eval/CR", "CR"), ("
 CURVE_EVERY = 8
 
 
-def _read_json(path: Path) -> Any:
-    return json.loads(path.read_text())
-
-
-def _write_csv(path: Path, rows: list[dict[str, Any]], fields: list[str]) -> None:
-    def write(fh: Any) -> None:
-        text = __import__("io").TextIOWrapper(fh, encoding="utf-8", newline="")
-        w = csv.DictWriter(text, fieldnames=fields, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-        text.flush()
-        text.detach()
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, write)
-
-
 def world_of(cfg: dict[str, Any]) -> str:
     """``aid`` for the learning-aid world (a progress reward or ego-centric columns), ``spec`` for SPEC's."""
     env = cfg.get("env", {})
@@ -86,41 +69,13 @@ def transfer_of(cfg: dict[str, Any]) -> str:
     return rest if world in ("aid", "spec") and rest else point
 
 
-def _read_rows(path: Path) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with path.open(newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
-def _episodes(path: Path) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with path.open(newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
-def _scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
-    f = run_dir / "logs" / "scalars" / f"{name}.csv"
-    if not f.is_file():
-        return []
-    out = []
-    with f.open(newline="") as fh:
-        for row in csv.reader(fh):  # step,value rows, no header (uavlae.factories' CSV logger)
-            try:
-                out.append((int(float(row[0])), float(row[1])))
-            except (IndexError, ValueError):
-                continue
-    return out
-
-
 def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]] | None:
     """(run row, episode rows, curve rows) of a finished run in ``d``; None when unfinished."""
     final_file = d / "final_metrics.json"
     if not (final_file.is_file() and (d / "config.json").is_file()):
         return None
-    cfg, final = _read_json(d / "config.json"), _read_json(final_file)
-    meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+    cfg, final = read_json(d / "config.json"), read_json(final_file)
+    meta = read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
     frames = int(final.get("frames", 0))
     if frames < int(cfg["trainer"]["total_frames"]):
         return None
@@ -148,13 +103,13 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     sources = {"alone": train_eval_dir(d, frames), "with_advisor": d / "eval" / "with_advisor",
                "heuristic": d / "eval" / "baseline_heuristic", "random": d / "eval" / "baseline_random"}
     for evaluation, folder in sources.items():
-        for i, row in enumerate(_episodes(folder / "episodes.csv")):
+        for i, row in enumerate(read_rows(folder / "episodes.csv")):
             episodes.append({**key, "evaluation": evaluation, "scenario": int(row.get("row", i)),
                              **{c: row.get(c) for c in EPISODE_COLUMNS}})
     curves: dict[int, dict[str, Any]] = defaultdict(dict)
     for name, col in CURVE_SCALARS:
-        for step, value in _scalar(d, name):
-            curves[step][col] = value
+        for step, value in read_scalar(d, name):
+            curves[int(step)][col] = value  # a frame count: written as a whole number
     # every evaluation, and the logged counters every CURVE_EVERY-th batch (a curve, not a log)
     curve_rows = [{**key, "frames": step, **vals} for i, (step, vals) in enumerate(sorted(curves.items()))
                   if "DCR" in vals or i % CURVE_EVERY == 0]
@@ -170,7 +125,7 @@ def collect(root: Path, restored: bool = False
         d = cfg_file.parent
         if any(p.startswith(".") for p in d.relative_to(root).parts) or not (d / "meta.json").is_file():
             continue
-        if not restored and "restored_from" in _read_json(d / "meta.json"):
+        if not restored and "restored_from" in read_json(d / "meta.json"):
             continue  # its records are already in the CSV files it was restored from
         rec = run_record(d)
         if rec is None:
@@ -211,9 +166,9 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
     collected again is replaced; the records of runs not under ``root`` are kept)."""
     new_runs, episodes, curves, unfinished = collect(root)
     fresh = {_key(r) for r in new_runs}
-    runs = _merged(_read_rows(out / "runs.csv"), new_runs, fresh)
-    episodes = _merged(_read_rows(out / "episodes.csv"), episodes, fresh)
-    curves = _merged(_read_rows(out / "curves.csv"), curves, fresh)
+    runs = _merged(read_rows(out / "runs.csv"), new_runs, fresh)
+    episodes = _merged(read_rows(out / "episodes.csv"), episodes, fresh)
+    curves = _merged(read_rows(out / "curves.csv"), curves, fresh)
     checkout = checkout_of(root)
     for run in new_runs:
         for name in KEPT_FILES:
@@ -223,10 +178,10 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
             target.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(target, lambda fh, data=data: fh.write(data))
     run_fields = list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS
-    _write_csv(out / "runs.csv", runs, run_fields)
-    _write_csv(out / "episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
-    _write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
-    _write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
+    write_csv(out / "runs.csv", runs, run_fields)
+    write_csv(out / "episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
+    write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
+    write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
     return {"runs": len(runs), "episodes": len(episodes), "curve_rows": len(curves), "unfinished": len(unfinished)}
 
 
@@ -255,8 +210,8 @@ def write_claim_records(quick_root: Path, out: Path) -> dict[str, int]:
             keep_baselines = (sweep, d.parent.name, d.name) == ("train", "sac", "seed0")
             episodes.extend(e for e in eps if e["evaluation"] == "alone"
                             or (keep_baselines and e["evaluation"] in ("random", "heuristic")))
-    _write_csv(out / "claims_runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
-    _write_csv(out / "claims_episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
+    write_csv(out / "claims_runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
+    write_csv(out / "claims_episodes.csv", episodes, [*KEY_COLUMNS, "evaluation", "scenario", *EPISODE_COLUMNS])
     return {"runs": len(runs), "episodes": len(episodes)}
 
 
@@ -266,7 +221,7 @@ def restore(records: Path, root: Path) -> int:
     from the run itself); returns how many runs were restored. A finished run's folder is left
     alone; one with a run in flight is an error."""
     by_run: dict[tuple[str, str, str, int], list[dict[str, str]]] = defaultdict(list)
-    for e in _read_rows(records / "episodes.csv"):
+    for e in read_rows(records / "episodes.csv"):
         by_run[_key(e)].append(e)
     n = 0
     for cfg_file in sorted((records / "runs").rglob("config.json")):
@@ -280,7 +235,7 @@ def restore(records: Path, root: Path) -> int:
         for name in KEPT_FILES:
             data = (cfg_file.parent / name).read_bytes()
             atomic_write(target / name, lambda fh, data=data: fh.write(data))
-        cfg, final = _read_json(target / "config.json"), _read_json(target / "final_metrics.json")
+        cfg, final = read_json(target / "config.json"), read_json(target / "final_metrics.json")
         ex = cfg.get("experiment") or {}
         key = (world_of(cfg), transfer_of(cfg), str(ex.get("method") or cfg["name"]), int(cfg["seed"]))
         folders = {"alone": train_eval_dir(target, int(final["frames"])), "with_advisor": target / "eval" / "with_advisor",
@@ -289,7 +244,7 @@ def restore(records: Path, root: Path) -> int:
             rows = [{"row": e["scenario"], **{c: e[c] for c in EPISODE_COLUMNS}} for e in by_run.get(key, [])
                     if e["evaluation"] == evaluation]
             if rows:
-                _write_csv(folder / "episodes.csv", rows, ["row", *EPISODE_COLUMNS])
+                write_csv(folder / "episodes.csv", rows, ["row", *EPISODE_COLUMNS])
         (target / "meta.json").write_text(json.dumps({"restored_from": str(records / "runs" / rel)}))
         n += 1
     return n

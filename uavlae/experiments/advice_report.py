@@ -14,7 +14,6 @@ and one verdict per claim of the paper.
 
 from __future__ import annotations
 
-import csv
 import math
 import zlib
 from collections import defaultdict
@@ -22,21 +21,20 @@ from pathlib import Path
 from typing import Any
 
 from uavlae.experiments.advice_stats import (
-    HIGHER_BETTER,
     METHOD_NAME,
     METRICS,
     Grid,
     difference,
-    fmt,
     grid_from_rows,
     interval,
     on_shared_seeds,
     point,
     probability_of_improvement,
 )
-from uavlae.files import atomic_write
+from uavlae.experiments.reporting import fmt_interval, markdown_table, read_rows, save_figure, write_text
 
 N_BOOT = 2000
+NONE_YET = "(none yet)"  # a table without rows
 WORLDS = {"aid": "learning-aid world (env=shaped_geodesic, 400k frames)", "spec": "SPEC's world (env=default, 1M frames)"}
 TRANSFERS = {"override": "the paper's override", "teach": "override + cloning + phase-out", "aid": "no advisor, one learning aid",
              "tune": "tuning (seeds apart)"}
@@ -57,17 +55,6 @@ DESIGN = (
 )
 
 
-def _read(path: Path) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with path.open(newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
-def _write(path: Path, text: str) -> None:
-    atomic_write(path, lambda fh: fh.write(text.encode()))
-
-
 def _num(v: Any) -> float:
     try:
         return float(v)
@@ -75,24 +62,16 @@ def _num(v: Any) -> float:
         return math.nan
 
 
-def _md(rows: list[dict[str, Any]], cols: list[str]) -> list[str]:
-    if not rows:
-        return ["(none yet)"]
-    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    out += ["| " + " | ".join(str(r.get(c, "")) for c in cols) + " |" for r in rows]
-    return out
-
-
 class Records:
     """The study's records, grouped by cell."""
 
     def __init__(self, d: Path):
-        self.runs = _read(d / "runs.csv")
-        self.episodes = _read(d / "episodes.csv")
-        self.curves = _read(d / "curves.csv")
-        self.claim_runs = _read(d / "claims_runs.csv")
-        self.claim_episodes = _read(d / "claims_episodes.csv")
-        self.unfinished = [r["path"] for r in _read(d / "unfinished.csv")]
+        self.runs = read_rows(d / "runs.csv")
+        self.episodes = read_rows(d / "episodes.csv")
+        self.curves = read_rows(d / "curves.csv")
+        self.claim_runs = read_rows(d / "claims_runs.csv")
+        self.claim_episodes = read_rows(d / "claims_episodes.csv")
+        self.unfinished = [r["path"] for r in read_rows(d / "unfinished.csv")]
         self.by_cell: dict[tuple[str, str, str, str], list[dict[str, str]]] = defaultdict(list)
         for e in self.episodes:
             self.by_cell[(e["world"], e["transfer"], e["method"], e["evaluation"])].append(e)
@@ -135,7 +114,7 @@ def cell_seed(world: str, transfer: str, method: str) -> int:
 def metric_cells(g: Grid | None, seed: int) -> dict[str, str]:
     if g is None:
         return {m: "" for m in METRICS}
-    return {m: fmt(*interval(g, m, N_BOOT, seed)) for m in METRICS}
+    return {m: fmt_interval(*interval(g, m, N_BOOT, seed)) for m in METRICS}
 
 
 def cells_table(rec: Records, world: str) -> list[dict[str, Any]]:
@@ -175,8 +154,8 @@ def dependence_table(rec: Records, world: str) -> list[dict[str, Any]]:
                "actor within tol of advice": f"{_mean(runs, 'override/actor_agree'):.3f}",
                "actor-advice gap": f"{_mean(runs, 'override/actor_gap'):.3f}"}
         for metric in ("DCR", "SLR", "CR"):
-            row[f"{metric} alone"] = fmt(*interval(alone, metric, N_BOOT, i)) if alone else ""
-            row[f"{metric} with advisor"] = fmt(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
+            row[f"{metric} alone"] = fmt_interval(*interval(alone, metric, N_BOOT, i)) if alone else ""
+            row[f"{metric} with advisor"] = fmt_interval(*interval(withadv, metric, N_BOOT, i)) if withadv else ""
         # with a row budget at that evaluation, the actor answered the rest: what "with advisor" means
         triggered = _mean(runs, "advised/override/triggered")
         row["triggered rows advised, with advisor"] = (f"{_mean(runs, 'advised/override/advised') / triggered:.3f}"
@@ -233,8 +212,8 @@ def comparison_table(rec: Records, world: str) -> list[dict[str, Any]]:
     for i, t, m, g, base in against_plain(rec, world):
         row = {"cell": cell_label(m, t), "seeds": " ".join(map(str, g.seeds))}
         for metric in ("DCR", "SLR", "CR"):
-            row[f"Δ{metric}"] = fmt(*difference(g, base, metric, N_BOOT, i))
-            row[f"P(better) {metric}"] = fmt(*probability_of_improvement(g, base, metric, N_BOOT, i), digits=2)
+            row[f"Δ{metric}"] = fmt_interval(*difference(g, base, metric, N_BOOT, i))
+            row[f"P(better) {metric}"] = fmt_interval(*probability_of_improvement(g, base, metric, N_BOOT, i), digits=2)
         rows.append(row)
     return rows
 
@@ -251,8 +230,8 @@ def learned_table(rec: Records, world: str) -> list[dict[str, Any]]:
         i = cell_seed(w, t, m)
         dcr, slr = interval(g, "DCR", N_BOOT, i), interval(g, "SLR", N_BOOT, i)
         learned = dcr[1] > r_dcr[2] and slr[1] > r_slr[2]
-        rows.append({"cell": cell_label(m, t), "DCR": fmt(*dcr), "SLR": fmt(*slr), "random DCR": fmt(*r_dcr),
-                     "random SLR": fmt(*r_slr), "learned": "yes" if learned else "no"})
+        rows.append({"cell": cell_label(m, t), "DCR": fmt_interval(*dcr), "SLR": fmt_interval(*slr), "random DCR": fmt_interval(*r_dcr),
+                     "random SLR": fmt_interval(*r_slr), "learned": "yes" if learned else "no"})
     return rows
 
 
@@ -294,7 +273,7 @@ def tuning_table(rec: Records) -> list[dict[str, Any]]:
         w_ = [r.get("clone_weight") for r in rec.run_rows(w, t, m)]
         score = (point(g, "DCR") + point(g, "SLR")) / 2
         rows.append({"clone_weight": w_[0] if w_ else "", "seeds": " ".join(map(str, g.seeds)),
-                     "DCR": fmt(*interval(g, "DCR", N_BOOT, i)), "SLR": fmt(*interval(g, "SLR", N_BOOT, i)),
+                     "DCR": fmt_interval(*interval(g, "DCR", N_BOOT, i)), "SLR": fmt_interval(*interval(g, "SLR", N_BOOT, i)),
                      "mean of DCR and SLR (the choice)": f"{score:.3f}"})
     return sorted(rows, key=lambda r: _num(r["clone_weight"]))
 
@@ -341,15 +320,15 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
     above = [m for m in dcr if m != "sac_llm" and dcr[m][1] > dcr["sac_llm"][2]]
     wins = all(dcr["sac_llm"][1] > v[2] for m, v in dcr.items() if m != "sac_llm")
     row("SAC+LLM is best on DCR", "holds" if wins else ("does not hold" if above else "not shown (intervals overlap)"),
-        "DCR " + "; ".join(f"{m} {fmt(*v)}" for m, v in dcr.items()))
+        "DCR " + "; ".join(f"{m} {fmt_interval(*v)}" for m, v in dcr.items()))
     cr = interval(llm, "CR", N_BOOT, 2)
     row("SAC+LLM's CR is near 0", "holds" if cr[2] <= 0.05 else "does not hold",
-        f"CR {fmt(*cr)} (near 0: the interval within [0, 0.05])")
+        f"CR {fmt_interval(*cr)} (near 0: the interval within [0, 0.05])")
     rvr = interval(llm, "RVR", N_BOOT, 3)
-    row("SAC+LLM's RVR is 0", "holds" if rvr[2] == 0 else "does not hold", f"RVR {fmt(*rvr)}")
+    row("SAC+LLM's RVR is 0", "holds" if rvr[2] == 0 else "does not hold", f"RVR {fmt_interval(*rvr)}")
     slr = interval(llm, "SLR", N_BOOT, 4)
     row("SAC+LLM's SLR is near 100%", "holds" if slr[1] >= 0.95 else "does not hold",
-        f"SLR {fmt(*slr)} (near 100%: the interval within [0.95, 1])")
+        f"SLR {fmt_interval(*slr)} (near 100%: the interval within [0.95, 1])")
     dth = {}
     for key in rec.claims:
         t, m, ev = key
@@ -360,7 +339,7 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
         others_below = all(iv[d][2] < iv[15.0][1] for d in iv if d != 15.0) if 15.0 in iv else False
         some_above = any(iv[d][1] > iv[15.0][2] for d in iv if d != 15.0) if 15.0 in iv else False
         verdict = "holds" if others_below else ("does not hold" if some_above else "not shown (intervals overlap)")
-        row("d_th = 15 m is best", verdict, "DCR by d_th: " + "; ".join(f"{d:g} m {fmt(*v)}" for d, v in iv.items()),
+        row("d_th = 15 m is best", verdict, "DCR by d_th: " + "; ".join(f"{d:g} m {fmt_interval(*v)}" for d, v in iv.items()),
             "`make quick-llm` (the d_th sweep, 50k frames, 100 LLM rows a run)")
     prompts = {t.split("prompt=")[1]: claims_grid(rec, t, m) for (t, m, ev) in rec.claims
                if m == "sac_llm" and ev == "alone" and t.startswith("d_th=15.0_prompt=")}
@@ -372,7 +351,7 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
         verdict = ("holds" if len(matters) == len(diffs) else "holds in part" if matters
                    else "does not hold" if hurts else "not shown (every interval holds 0)")
         row("each prompt guideline matters", verdict,
-            "DCR of the complete prompt minus each ablation: " + "; ".join(f"{p} {fmt(*d)}" for p, d in diffs.items()),
+            "DCR of the complete prompt minus each ablation: " + "; ".join(f"{p} {fmt_interval(*d)}" for p, d in diffs.items()),
             "`make quick-llm` (the prompt sweep, 50k frames, 100 LLM rows a run)")
     sh = learners.get("sac_heuristic")
     fps = {m: claims_grid(rec, "default", m) for m in ("sac_llm_fp0.3", "sac_llm_fp0.4", "sac_llm_fp0.5", "sac_llm_fp1.0")}
@@ -380,11 +359,11 @@ def claim_rows(rec: Records) -> list[dict[str, Any]]:
     better = []
     if sh is not None:
         d = difference(llm, sh, "DCR", N_BOOT, 7)
-        parts.append(f"SAC+LLM - SAC+Heuristic DCR {fmt(*d)}")
+        parts.append(f"SAC+LLM - SAC+Heuristic DCR {fmt_interval(*d)}")
         better.append(1 if d[1] > 0 else -1 if d[2] < 0 else 0)
     fp_iv = {m: interval(g, "DCR", N_BOOT, 8) for m, g in fps.items() if g is not None}
     if fp_iv:
-        parts.append("fp variants DCR " + "; ".join(f"{m} {fmt(*v)}" for m, v in fp_iv.items())
+        parts.append("fp variants DCR " + "; ".join(f"{m} {fmt_interval(*v)}" for m, v in fp_iv.items())
                      + " (at 50k frames, 100 LLM rows: not the same budget as SAC+LLM's 400k)")
     row("SAC+LLM is better than SAC+Heuristic and the fixed-probability variants",
         "holds" if better and all(b > 0 for b in better) else "does not hold" if any(b < 0 for b in better)
@@ -411,8 +390,8 @@ def rung_claim(rec: Records, row: Any) -> None:
         x, y = pair
         both = x.seeds
         d = {metric: difference(x, y, metric, N_BOOT, 20 + i) for metric in ("DCR", "SLR")}
-        parts.append(f"{TRANSFERS[transfer]}, seeds {' '.join(map(str, both))}: ΔDCR {fmt(*d['DCR'])}, "
-                     f"ΔSLR {fmt(*d['SLR'])}")
+        parts.append(f"{TRANSFERS[transfer]}, seeds {' '.join(map(str, both))}: ΔDCR {fmt_interval(*d['DCR'])}, "
+                     f"ΔSLR {fmt_interval(*d['SLR'])}")
         signs += [1 if v[1] > 0 else -1 if v[2] < 0 else 0 for v in d.values()]
     if not parts:
         row(claim, "pending", "the LLM rung has no finished run yet", command)
@@ -440,9 +419,9 @@ def findings(rec: Records) -> list[str]:
             for metric in ("DCR", "SLR"):
                 d = difference(g, base, metric, N_BOOT, i)
                 if d[1] > 0:
-                    better.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)}{cost})")
+                    better.append(f"{cell_label(m, t)} on {metric} ({fmt_interval(*d)}{cost})")
                 elif d[2] < 0:
-                    worse.append(f"{cell_label(m, t)} on {metric} ({fmt(*d)}{cost})")
+                    worse.append(f"{cell_label(m, t)} on {metric} ({fmt_interval(*d)}{cost})")
         lines.append(f"- **{WORLDS[world]}**: the actor alone beats plain SAC's, with the difference's interval above 0: "
                      + ("; ".join(better) if better else "no cell") + ". Worse than plain SAC: "
                      + ("; ".join(worse) if worse else "no cell") + ".")
@@ -452,17 +431,6 @@ def findings(rec: Records) -> list[str]:
             lines.append(f"- **{WORLDS[world]}**: plain SAC did not learn (DCR and SLR not above random's). "
                          + ("Learned where it did not: " + ", ".join(found) if found else "No cell learned") + ".")
     return lines
-
-
-def _save(fig: Any, out: Path, stem: str) -> list[str]:
-    """``fig`` as ``stem``.png and .pdf (the pdf without a creation date, so a rerun on the same
-    records writes the same bytes); the names written."""
-    names = []
-    for ext in ("png", "pdf"):
-        path = out / f"{stem}.{ext}"
-        fig.savefig(path, metadata={"CreationDate": None} if ext == "pdf" else None)
-        names.append(path.name)
-    return names
 
 
 def figures(rec: Records, out: Path) -> list[str]:
@@ -497,8 +465,7 @@ def figures(rec: Records, out: Path) -> list[str]:
         fig.legend(loc="upper right", ncol=2, fontsize=8)
         fig.suptitle(WORLDS[world], x=0.3)
         fig.tight_layout(rect=(0, 0, 1, 0.95))
-        made += _save(fig, out, f"cells_{world}")
-        plt.close(fig)
+        made += save_figure(fig, out, f"cells_{world}")
         # curves: the actor alone's DCR during training, and the trigger rate
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
         colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -521,8 +488,7 @@ def figures(rec: Records, out: Path) -> list[str]:
             axes[0].legend(fontsize=7)
         fig.suptitle(WORLDS[world])
         fig.tight_layout()
-        made += _save(fig, out, f"curves_{world}")
-        plt.close(fig)
+        made += save_figure(fig, out, f"curves_{world}")
     return made
 
 
@@ -580,8 +546,8 @@ def build(records_dir: Path) -> str:
           f"Statistics: {METHOD_NAME.format(n=N_BOOT)}. Differences pair the scenarios, and are taken on the seeds "
           "both cells ran (a cell with fewer seeds is not set against the other's extra seeds); each cell's resamples are seeded from its name, so a cell added changes no other's interval; P(better) is rliable's probability of improvement on per-episode scores (ties "
           "count a half), with its bootstrap interval. Intervals stay inside each metric's range.", "",
-          "## Design and progress", "", *_md(progress_rows(rec), ["world", "transfer", "method", "seeds wanted",
-                                                                    "seeds done", "state"]), "",
+          "## Design and progress", "", *markdown_table(progress_rows(rec), ["world", "transfer", "method", "seeds wanted",
+                                                                    "seeds done", "state"], NONE_YET), "",
           "Tuning seeds (100, 101) are apart from the verdict seeds (0-4). Teach: cloning weight chosen on the tuning "
           "seeds, decayed linearly to 0 over the run; trigger (d_th) annealed to 0 over the first half. The LLM rung "
           "advises every triggered row: the LLM answers the student's warm-up and the rows it is least sure of, at "
@@ -593,33 +559,33 @@ def build(records_dir: Path) -> str:
         if not table:
             continue
         md += [f"## {title}", "", "The actor alone at the end of training, every metric (lower is better for CR, RVR, ECR):",
-               "", *_md(table, ["cell", "advisor", "transfer", "seeds", *METRICS]), "",
+               "", *markdown_table(table, ["cell", "advisor", "transfer", "seeds", *METRICS], NONE_YET), "",
                "Dependence on the advisor (means over seeds; the with-advisor evaluation uses the full trigger):", "",
-               *_md(dependence_table(rec, world), ["cell", "advised fraction", "trigger rate", "trigger, first / last fifth",
+               *markdown_table(dependence_table(rec, world), ["cell", "advised fraction", "trigger rate", "trigger, first / last fifth",
                                                    "actor within tol of advice", "actor-advice gap", "DCR alone",
                                                    "DCR with advisor", "SLR alone", "SLR with advisor", "CR alone",
                                                    "CR with advisor", "triggered rows advised, with advisor",
-                                                   "advisor budget"]), "",
+                                                   "advisor budget"], NONE_YET), "",
                "Against plain SAC in the same world (difference, and probability of improvement):", "",
-               *_md(comparison_table(rec, world), ["cell", "seeds", "ΔDCR", "P(better) DCR", "ΔSLR", "P(better) SLR", "ΔCR",
-                                                   "P(better) CR"]), "",
+               *markdown_table(comparison_table(rec, world), ["cell", "seeds", "ΔDCR", "P(better) DCR", "ΔSLR", "P(better) SLR", "ΔCR",
+                                                   "P(better) CR"], NONE_YET), "",
                "What it cost (means per run; each run had one core, beside at most one other job, so the wall "
                "clock ratios carry that noise). An LLM row answered from the answer cache (a run repeated with "
                "the same seed asks the same questions) costs no call, no token and almost no wait: the wall "
                "clock of such a run is not the live cost.", "",
-               *_md(cost_table(rec, world), ["cell", "runs", "training wall clock per run", "x plain SAC",
+               *markdown_table(cost_table(rec, world), ["cell", "runs", "training wall clock per run", "x plain SAC",
                                              "advised rows per run", "LLM rows per run",
                                              "asked live / from the answer cache", "LLM tokens in / out per run",
-                                             "waiting for the LLM per run"]), "",
+                                             "waiting for the LLM per run"], NONE_YET), "",
                "Learned (DCR and SLR intervals above the uniform-random policy's on the same scenarios):", "",
-               *_md(learned_table(rec, world), ["cell", "DCR", "SLR", "random DCR", "random SLR", "learned"]), "",
+               *markdown_table(learned_table(rec, world), ["cell", "DCR", "SLR", "random DCR", "random SLR", "learned"], NONE_YET), "",
                f"![cells](cells_{world}.png)", "", f"![curves](curves_{world}.png)", ""]
-    md += ["## Tuning the cloning weight", "", *_md(tuning_table(rec), ["clone_weight", "seeds", "DCR", "SLR",
-                                                                        "mean of DCR and SLR (the choice)"]), "",
+    md += ["## Tuning the cloning weight", "", *markdown_table(tuning_table(rec), ["clone_weight", "seeds", "DCR", "SLR",
+                                                                        "mean of DCR and SLR (the choice)"], NONE_YET), "",
            "## SAC+Heuristic of the quick profile, rerun with the per-row greedy advisor", "",
-           *_md(rerun_table(rec), ["sac_heuristic", "seeds", *METRICS]), "",
-           "## The paper's claims", "", *_md(claim_rows(rec), ["claim", "verdict", "evidence", "command"]), "",
+           *markdown_table(rerun_table(rec), ["sac_heuristic", "seeds", *METRICS], NONE_YET), "",
+           "## The paper's claims", "", *markdown_table(claim_rows(rec), ["claim", "verdict", "evidence", "command"], NONE_YET), "",
            "## Findings", "", *findings(rec), ""]
     made = figures(rec, out)
-    _write(out / "report.md", "\n".join(md))
+    write_text(out / "report.md", "\n".join(md))
     return f"wrote {out / 'report.md'} and {len(made)} figures"

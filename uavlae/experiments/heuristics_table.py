@@ -18,8 +18,6 @@ the exact commands, wall-clock seconds and the machine) and ``results/heuristics
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import subprocess
 import sys
 import tempfile
@@ -31,7 +29,8 @@ import torch
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.files import atomic_write, dump_json, portable
+from uavlae.experiments.reporting import markdown_table, read_json, read_rows, write_text
+from uavlae.files import dump_json, portable
 from uavlae.machine import describe_machine
 
 # the repository's results folder: the tool runs from the checkout's root (make heuristics-table)
@@ -71,10 +70,9 @@ def main() -> None:
                 t0 = time.perf_counter()
                 subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
                 wall = time.perf_counter() - t0
-                final = json.loads((run_dir / "final_metrics.json").read_text())
+                final = read_json(run_dir / "final_metrics.json")
                 metrics = {k: final[f"eval/{k}"] for k in (*PAPER_METRICS, "mean_length")}
-                with open(next((run_dir / "eval").glob("*/episodes.csv"))) as f:
-                    rows = list(csv.DictReader(f))
+                rows = read_rows(next((run_dir / "eval").glob("*/episodes.csv")))
                 for k in EVENTS:  # the share of episodes that ended in each kind of collision
                     metrics[f"{k}_rate"] = sum(str(r[k]).lower() in ("true", "1", "1.0") for r in rows) / len(rows)
                 shown = [c if not c.startswith("run_dir=") else "run_dir=<tmp>" for c in cmd[1:]]
@@ -85,24 +83,24 @@ def main() -> None:
     out = {"runs": runs, "methods": METHODS, "sets": {k: v.as_posix() for k, v in sets.items()},
            "command": "python -m uavlae.experiments.heuristics_table " + " ".join(sys.argv[1:]), "machine": describe_machine()}
     dump_json(RESULTS / "heuristics_table.json", out)
+    write_text(RESULTS / "heuristics_table.md", markdown(out, a.eval_seed))
+
+
+def markdown(out: dict, eval_seed: int) -> str:
+    """The table of ``heuristics_table.json`` (``out``) as ``heuristics_table.md``."""
+    events = {"bz_collision": "BZ", "nfz_entry": "NFZ", "ou_collision": "OU"}  # EVENTS' collisions, as headed
+    rows = [{"method": r["method"], "evaluation set": r["eval_set"], "episodes": f"{r['episodes']:.0f}",
+             **{k: f"{r['metrics'][k]:.3f}" for k in PAPER_METRICS},
+             **{name: f"{r['metrics'][k + '_rate']:.3f}" for k, name in events.items()}, "wall s": r["wall_s"]}
+            for r in out["runs"]]
     lines = [
         "# The greedy heuristic (the paper's) and the global planner (beyond the paper)", "",
         f"Command: `{out['command'].strip()}`; one episode per scenario, up to t_max slots; "
-        f"evaluation env seed {a.eval_seed}. Machine: {out['machine']['cpu']}, torch {out['machine']['torch']}.", "",
-        "| method | evaluation set | episodes | DCR | CR | SLR | RVR | ECR | BZ | NFZ | OU | wall s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"evaluation env seed {eval_seed}. Machine: {out['machine']['cpu']}, torch {out['machine']['torch']}.", "",
+        *markdown_table(rows, ["method", "evaluation set", "episodes", *PAPER_METRICS, *events.values(), "wall s"]),
+        "", "BZ, NFZ, OU: the share of episodes that ended in that collision (their sum is CR).",
     ]
-    for r in runs:
-        m = r["metrics"]
-        lines.append(
-            f"| {r['method']} | {r['eval_set']} | {r['episodes']:.0f} | "
-            + " | ".join(f"{m[k]:.3f}" for k in PAPER_METRICS)
-            + " | " + " | ".join(f"{m[k + '_rate']:.3f}" for k in EVENTS[:3])
-            + f" | {r['wall_s']} |"
-        )
-    lines += ["", "BZ, NFZ, OU: the share of episodes that ended in that collision (their sum is CR)."]
-    text = ("\n".join(lines) + "\n").encode()
-    atomic_write(RESULTS / "heuristics_table.md", lambda fh: fh.write(text))
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

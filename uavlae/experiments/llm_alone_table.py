@@ -11,18 +11,22 @@ heuristic flown on the same scenarios with the same seeds (one scenario per chun
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import tempfile
 from pathlib import Path
 from typing import Any
 
 from uavlae.envs.metrics import PAPER_METRICS
-from uavlae.files import atomic_write, dump_json, train_eval_dir
+from uavlae.experiments.reporting import markdown_table, read_json, read_rows, write_text
+from uavlae.files import dump_json, train_eval_dir
 from uavlae.machine import describe_machine
 
 EPISODE_COLUMNS = ("row", "length", "llm_calls", "llm_fallbacks", "collided", "landed", "boundary_exit",
                    "rz_speeding", "data_collected", "data_total", "energy_used")
+# the Markdown tables' headings: what the LLM's calls cost over every invocation, and each episode
+COST_COLUMNS = ("decisions", "in scored episodes", "HTTP calls", "cache hits", "ask-again", "failures (fallback)",
+                "prompt tokens", "completion tokens", "wall s", "decisions/s", "latency p50 s", "p95 s")
+EPISODE_TABLE = ("scenario", "length", "decisions", "fallbacks", "collided", "landed", "left the area", "data",
+                 "energy J")
 
 
 def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[str, float]:
@@ -35,7 +39,7 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[st
     from uavlae.envs.metrics import aggregate
     from uavlae.envs.scenario import load_scenarios
     from uavlae.evaluate import eval_set_path, make_evaluation
-    from uavlae.factories import make_heuristic
+    from uavlae.factories import HeuristicGroup, make_heuristic
 
     c = OmegaConf.create(cfg)
     # the run's chunks and seeds, none of its call budget or shards: the heuristic flies them all here
@@ -48,7 +52,7 @@ def heuristic_on(run_dir: Path, cfg: dict[str, Any], rows: list[int]) -> dict[st
     chunk = int(tr.eval_chunk or len(scenarios))
     scenarios = scenarios[: (max(rows) // chunk + 1) * chunk]
     with tempfile.TemporaryDirectory() as tmp:
-        flight = make_evaluation(c, env_cfg, scenarios, chunked=True).fly(make_heuristic(c, env_cfg), tmp)
+        flight = make_evaluation(c, env_cfg, scenarios, chunked=True).fly(make_heuristic(HeuristicGroup.of(c), env_cfg), tmp)
         records = flight.llm_alone["records"]
     keep = torch.isin(records["row"], torch.tensor(rows))
     return aggregate({k: v[keep] for k, v in records.items()})
@@ -77,13 +81,12 @@ def in_flight(run_dir: Path) -> list[dict[str, Any]]:
 
 
 def build(run_dir: Path, command: str | None) -> dict[str, Any]:
-    final = json.loads((run_dir / "final_metrics.json").read_text())
-    summary = json.loads((run_dir / "summary.json").read_text())
-    cfg = json.loads((run_dir / "config.json").read_text())
-    meta = json.loads((run_dir / "meta.json").read_text()) if (run_dir / "meta.json").is_file() else {}
+    final = read_json(run_dir / "final_metrics.json")
+    summary = read_json(run_dir / "summary.json")
+    cfg = read_json(run_dir / "config.json")
+    meta = read_json(run_dir / "meta.json") if (run_dir / "meta.json").is_file() else {}
     la = summary["llm_alone"]
-    episodes_file = train_eval_dir(run_dir, 0) / "episodes.csv"
-    episodes = list(csv.DictReader(episodes_file.open())) if episodes_file.is_file() else []
+    episodes = read_rows(train_eval_dir(run_dir, 0) / "episodes.csv")
     n = int(la["episodes_scored"])
     return {
         "what": "the LLM alone (+exp=llm): the local model decides every step; metrics over the scored episodes",
@@ -132,13 +135,11 @@ def markdown(res: dict[str, Any]) -> str:
             f"; paused at slot {res['in_flight_step']} of the episode in flight" if res["in_flight_step"] is not None
             else "; paused before the next episode") + ": the same command continues") + "). Metrics cover finished episodes only.",
         "",
-        "| method | episodes | DCR | CR | SLR | RVR | ECR | mean length |",
-        "|---|---|---|---|---|---|---|---|",
-        f"| llm | {res['episodes_scored']} | " + " | ".join(f(m[k]) for k in PAPER_METRICS) + f" | {f(m['mean_length'])} |",
+        *markdown_table([{"method": name, "episodes": res["episodes_scored"],
+                          **{k: f(v[k]) for k in PAPER_METRICS}, "mean length": f(v["mean_length"])}
+                         for name, v in (("llm", m), ("heuristic, same scenarios", h)) if v],
+                        ["method", "episodes", *PAPER_METRICS, "mean length"]),
     ]
-    if h:
-        lines.append(f"| heuristic, same scenarios | {res['episodes_scored']} | "
-                     + " | ".join(f(h[k]) for k in PAPER_METRICS) + f" | {f(h['mean_length'])} |")
     for fl in res.get("in_flight_so_far") or []:
         lines += ["", f"Paused episode (scenario {fl['scenario']}, not scored), after {fl['slot']} slots: at "
                   f"{tuple(fl['position'])}, data {fl['data_collected']:.2f} of {fl['data_total']:.2f}, energy "
@@ -148,23 +149,22 @@ def markdown(res: dict[str, Any]) -> str:
         "",
         "Cost over every invocation:",
         "",
-        "| decisions | in scored episodes | HTTP calls | cache hits | ask-again | failures (fallback) | "
-        "prompt tokens | completion tokens | wall s | decisions/s | latency p50 s | p95 s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
-        f"| {int(c['calls'])} | {int(c['calls_scored'])} | {int(c.get('http_calls', 0))} | {int(c.get('cache_hits', 0))} | "
-        f"{int(c.get('ask_again', 0))} | {int(c['fallbacks'])} | {int(c.get('prompt_tokens', 0))} | "
-        f"{int(c.get('completion_tokens', 0))} | {c['wall_s']:.0f} | {c['calls_per_s']:.2f} | "
-        f"{f(c.get('latency_p50_s'))} | {f(c.get('latency_p95_s'))} |",
+        *markdown_table([{
+            "decisions": int(c["calls"]), "in scored episodes": int(c["calls_scored"]),
+            "HTTP calls": int(c.get("http_calls", 0)), "cache hits": int(c.get("cache_hits", 0)),
+            "ask-again": int(c.get("ask_again", 0)), "failures (fallback)": int(c["fallbacks"]),
+            "prompt tokens": int(c.get("prompt_tokens", 0)), "completion tokens": int(c.get("completion_tokens", 0)),
+            "wall s": f"{c['wall_s']:.0f}", "decisions/s": f"{c['calls_per_s']:.2f}",
+            "latency p50 s": f(c.get("latency_p50_s")), "p95 s": f(c.get("latency_p95_s"))}], COST_COLUMNS),
         "",
         "Episodes:",
         "",
-        "| scenario | length | decisions | fallbacks | collided | landed | left the area | data | energy J |",
-        "|---|---|---|---|---|---|---|---|---|",
+        *markdown_table([{
+            "scenario": e["scenario"], "length": e["length"], "decisions": e["llm_calls"], "fallbacks": e["llm_fallbacks"],
+            "collided": e["collided"], "landed": e["landed"], "left the area": e["boundary_exit"],
+            "data": f"{float(e['data_collected']):.2f} of {float(e['data_total']):.2f}",
+            "energy J": f"{float(e['energy_used']):.0f}"} for e in res["episodes"]], EPISODE_TABLE),
     ]
-    for e in res["episodes"]:
-        lines.append(f"| {e['scenario']} | {e['length']} | {e['llm_calls']} | {e['llm_fallbacks']} | {e['collided']} | "
-                     f"{e['landed']} | {e['boundary_exit']} | {float(e['data_collected']):.2f} of "
-                     f"{float(e['data_total']):.2f} | {float(e['energy_used']):.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
     res = build(a.run_dir, a.command)
     dump_json(a.out.with_suffix(".json"), res)
     text = markdown(res)
-    atomic_write(a.out.with_suffix(".md"), lambda fh: fh.write(text.encode("utf-8")))
+    write_text(a.out.with_suffix(".md"), text)
     print(text)
 
 

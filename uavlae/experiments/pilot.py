@@ -31,9 +31,10 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from uavlae.experiments.advice import EPISODE_COLUMNS, _episodes, _read_json, _read_rows, _scalar, _write_csv
-from uavlae.experiments.advice_stats import METHOD_NAME, METRICS, difference, fmt, grid_from_rows, interval
-from uavlae.files import atomic_write, train_eval_dir
+from uavlae.experiments.advice import EPISODE_COLUMNS
+from uavlae.experiments.advice_stats import METHOD_NAME, METRICS, difference, grid_from_rows, interval
+from uavlae.experiments.reporting import fmt_interval, markdown_table, read_json, read_rows, read_scalar, write_csv, write_text
+from uavlae.files import train_eval_dir
 
 KEY_COLUMNS = ["stage", "rung", "seed"]
 EPISODE_KEYS = [*KEY_COLUMNS, "evaluation", "set", "scenario"]
@@ -54,13 +55,13 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     """(run row, episode rows, curve rows) of a finished run in ``d``; None when unfinished."""
     if not ((d / "final_metrics.json").is_file() and (d / "config.json").is_file()):
         return None
-    cfg, final = _read_json(d / "config.json"), _read_json(d / "final_metrics.json")
+    cfg, final = read_json(d / "config.json"), read_json(d / "final_metrics.json")
     frames = int(final.get("frames", 0))
     if frames < int(cfg["trainer"]["total_frames"]):
         return None
     ex = cfg.get("experiment") or {}
     key = {"stage": str(ex.get("point")), "rung": str(ex.get("method") or cfg["name"]), "seed": int(cfg["seed"])}
-    meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+    meta = read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
     env, sf = cfg["env"], cfg.get("safety_filter") or {}
     run = {**key, "frames": frames, "wall_s": final.get("wall_s"), "updates": final.get("updates"),
            "algo": cfg["algo"]["name"], "hidden": cfg["algo"].get("hidden"), "obs_frame": env.get("obs_frame", "world"),
@@ -80,13 +81,13 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
         sources[(evaluation, "heldout")] = d / "evaluate" / folder
     episodes = []
     for (evaluation, which), folder in sources.items():
-        for i, row in enumerate(_episodes(folder / "episodes.csv")):
+        for i, row in enumerate(read_rows(folder / "episodes.csv")):
             episodes.append({**key, "evaluation": evaluation, "set": which, "scenario": int(row.get("row", i)),
                              **{c: row.get(c) for c in EPISODE_COLUMNS}})
     curves: dict[int, dict[str, Any]] = defaultdict(dict)
     for name, col in CURVE_SCALARS:
-        for step, value in _scalar(d, name):
-            curves[step][col] = value
+        for step, value in read_scalar(d, name):
+            curves[int(step)][col] = value  # a frame count: written as a whole number
     curve_rows = [{**key, "frames": step, **vals} for step, vals in sorted(curves.items()) if "DCR" in vals]
     return run, episodes, curve_rows
 
@@ -108,14 +109,14 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
     fresh = {(r["stage"], r["rung"], int(r["seed"])) for r in runs}
 
     def merged(name: str, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        old = [r for r in _read_rows(out / name) if (r["stage"], r["rung"], int(r["seed"])) not in fresh]
+        old = [r for r in read_rows(out / name) if (r["stage"], r["rung"], int(r["seed"])) not in fresh]
         return old + new
 
     runs, episodes, curves = merged("runs.csv", runs), merged("episodes.csv", episodes), merged("curves.csv", curves)
-    _write_csv(out / "runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
-    _write_csv(out / "episodes.csv", episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
-    _write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
-    _write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
+    write_csv(out / "runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
+    write_csv(out / "episodes.csv", episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
+    write_csv(out / "unfinished.csv", [{"path": p} for p in unfinished], ["path"])
     return {"runs": len(runs), "episodes": len(episodes), "curve_rows": len(curves), "unfinished": len(unfinished)}
 
 
@@ -171,13 +172,13 @@ def write_references(out: Path, sets: dict[str, Path] | None = None) -> dict[str
                 folder = out / "references" / which / name
                 with torch.no_grad():
                     ev.run(policy, folder)
-                for i, row in enumerate(_episodes(folder / "episodes.csv")):
+                for i, row in enumerate(read_rows(folder / "episodes.csv")):
                     episodes.append({"stage": "references", "rung": name, "seed": 0, "evaluation": "alone",
                                      "set": which, "scenario": int(row.get("row", i)),
                                      **{c: row.get(c) for c in EPISODE_COLUMNS}})
                 print(f"{which} {name}", flush=True)
-    old = [r for r in _read_rows(out / "episodes.csv") if r["stage"] != "references"]
-    _write_csv(out / "episodes.csv", old + episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    old = [r for r in read_rows(out / "episodes.csv") if r["stage"] != "references"]
+    write_csv(out / "episodes.csv", old + episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
     return {"episodes": len(episodes)}
 
 
@@ -225,33 +226,33 @@ def _time_to_pilot(curves: list[dict[str, str]], stage: str, rung: str, ecr: flo
 
 def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dict[str, str]], which: str,
            ecr: float | None) -> list[str]:
-    lines = ["| rung | seeds | flown | " + " | ".join(METRICS) + " | filter acts (train / eval) | wall (min) |"
-             + (" time to a pilot |" if which == "selection" else ""),
-             "|---|---|---|" + "---|" * len(METRICS) + "---|---|" + ("---|" if which == "selection" else "")]
+    ttp = "time to a pilot"
+    columns = ["rung", "seeds", "flown", *METRICS, "filter acts (train / eval)", "wall (min)",
+               *([ttp] if which == "selection" else [])]
+    rows = []
     for rung in _order(runs, stage):
         rr = [r for r in runs if r["stage"] == stage and r["rung"] == rung]
         wall = sum(float(r["wall_s"] or 0) for r in rr) / max(len(rr), 1) / 60
         share = " / ".join(f"{float(v):.3f}" if v not in (None, "") else "–"
                            for v in (rr[0].get("train_intervention"), rr[0].get("eval_intervention")))
         for evaluation in ("pilot", "alone"):
-            rows = cells.get((stage, rung, evaluation, which))
-            if not rows:
+            episodes = cells.get((stage, rung, evaluation, which))
+            if not episodes:
                 continue
-            g = grid_from_rows(rows)
-            vals = [fmt(*interval(g, m)) for m in METRICS]
-            flown = "actor + filter" if evaluation == "pilot" else "actor alone"
-            lines.append(f"| {rung} | {' '.join(map(str, g.seeds))} | {flown} | " + " | ".join(vals)
-                         + f" | {share if evaluation == 'pilot' else ''} | {wall:.0f} |"
-                         + (f" {_time_to_pilot(curves, stage, rung, ecr) if evaluation == 'pilot' else ''} |"
-                            if which == "selection" else ""))
-    return lines
+            g = grid_from_rows(episodes)
+            pilot = evaluation == "pilot"
+            rows.append({"rung": rung, "seeds": " ".join(map(str, g.seeds)),
+                         "flown": "actor + filter" if pilot else "actor alone",
+                         **{m: fmt_interval(*interval(g, m)) for m in METRICS},
+                         "filter acts (train / eval)": share if pilot else "", "wall (min)": f"{wall:.0f}",
+                         ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else ""})
+    return markdown_table(rows, columns)
 
 
 def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> list[str]:
     """Paired differences of each rung against the rung above it, for the pilot and the actor alone."""
     rungs = _order(runs, stage)
-    lines = ["| rung vs the one above | flown | " + " | ".join(f"Δ{m}" for m in METRICS) + " |",
-             "|---|---|" + "---|" * len(METRICS)]
+    rows = []
     for above, rung in zip(rungs, rungs[1:]):
         for evaluation in ("pilot", "alone"):
             a, b = cells.get((stage, rung, evaluation, which)), cells.get((stage, above, evaluation, which))
@@ -262,15 +263,15 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
             if not both:
                 continue
             ga, gb = ga.take(both), gb.take(both)
-            flown = "actor + filter" if evaluation == "pilot" else "actor alone"
-            lines.append(f"| {rung} vs {above} | {flown} | "
-                         + " | ".join(fmt(*difference(ga, gb, m)) for m in METRICS) + " |")
-    return lines
+            rows.append({"rung vs the one above": f"{rung} vs {above}",
+                         "flown": "actor + filter" if evaluation == "pilot" else "actor alone",
+                         **{f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}})
+    return markdown_table(rows, ["rung vs the one above", "flown", *(f"Δ{m}" for m in METRICS)])
 
 
 def build(records: Path) -> Path:
     """``report.md`` in ``records`` from its CSV files (module doc)."""
-    runs, episodes, curves = (_read_rows(records / n) for n in ("runs.csv", "episodes.csv", "curves.csv"))
+    runs, episodes, curves = (read_rows(records / n) for n in ("runs.csv", "episodes.csv", "curves.csv"))
     cells = _cells(episodes)
     lines = ["# The pilot study", "",
              "Generated by `python -m uavlae.experiments.pilot report results/pilot` from the CSV records "
@@ -293,7 +294,7 @@ def build(records: Path) -> Path:
                       "| policy | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
             for rung in rows:
                 g = grid_from_rows(cells[("references", rung, "alone", which)])
-                lines.append(f"| {rung} | " + " | ".join(fmt(*interval(g, m)) for m in METRICS) + " |")
+                lines.append(f"| {rung} | " + " | ".join(fmt_interval(*interval(g, m)) for m in METRICS) + " |")
             lines.append("")
     stages = [s for s in dict.fromkeys(r["stage"] for r in runs) if s != "references"]
     for stage in stages:
@@ -306,17 +307,14 @@ def build(records: Path) -> Path:
                 continue
             lines += [f"## {stage}: {title}", "", *_table(stage, runs, cells, curves, which, ecr), ""]
             if which == "selection":
+                grids = {ev: grid_from_rows([{**r, "seed": 0} for r in rows if r["seed"] == rows[0]["seed"]])
+                         for ev, rows in ref.items() if rows}
                 lines += ["References on the same scenarios (flown in every run; the first rung's copy):", "",
-                          "| policy | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
-                for ev, rows in ref.items():
-                    if rows:
-                        g = grid_from_rows([{**r, "seed": 0} for r in rows if r["seed"] == rows[0]["seed"]])
-                        lines.append(f"| {ev} | " + " | ".join(fmt(*interval(g, m)) for m in METRICS) + " |")
-                lines.append("")
+                          *markdown_table([{"policy": ev, **{m: fmt_interval(*interval(g, m)) for m in METRICS}}
+                                           for ev, g in grids.items()], ["policy", *METRICS]), ""]
             lines += [f"### {stage}: what each ingredient moved ({which})", "", *_ladder(stage, runs, cells, which), ""]
-    text = "\n".join(lines) + "\n"
     target = records / "report.md"
-    atomic_write(target, lambda fh: fh.write(text.encode("utf-8")))
+    write_text(target, "\n".join(lines) + "\n")
     return target
 
 

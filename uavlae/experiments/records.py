@@ -38,6 +38,7 @@ from typing import Any
 
 import yaml
 
+from uavlae.experiments.reporting import read_json
 from uavlae.files import ABSOLUTE_PATH, train_eval_dir
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
@@ -68,9 +69,9 @@ def _relative(value: Any, swaps: list[tuple[str, str]], where: str, found: list[
 
 
 def _load(path: Path) -> Any:
-    """The JSON of ``path``, or None where it does not parse."""
+    """The JSON of ``path``, or None where it does not parse (kept as text, for the report to list)."""
     try:
-        return json.loads(path.read_text())
+        return read_json(path)
     except ValueError:
         return None
 

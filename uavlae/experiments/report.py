@@ -25,8 +25,6 @@ everything from the run files.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import math
 import shlex
@@ -41,7 +39,17 @@ import yaml
 from uavlae.envs.metrics import aggregate, load_records
 from uavlae.experiments.advice_stats import METHOD_NAME, Grid, grid_from_rows, mean_interval
 from uavlae.experiments.advice_stats import interval as bootstrap_interval
-from uavlae.files import atomic_write, dump_json, train_eval_dir
+from uavlae.experiments.reporting import (  # noqa: F401  (read_scalar: re-exported, readers of runs found it here)
+    fmt_interval,
+    markdown_table,
+    read_json,
+    read_rows,
+    read_scalar,
+    save_figure,
+    write_csv,
+    write_text,
+)
+from uavlae.files import dump_json, train_eval_dir
 
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 # Higher is better for these; lower for the others (the radar chart flips those).
@@ -73,6 +81,7 @@ LLM_AXES = (
 )
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">", "h", "p")
 LINESTYLES = ("-", "--", "-.", ":")
+FIGURE_DPI = 150  # the report's figures: sharp enough to read a legend in a PNG
 
 
 # ---------------------------------------------------------------------------- statistics
@@ -122,12 +131,7 @@ def mean_ci(xs: list[float]) -> tuple[float, float, float, int]:
     return m, m - half, m + half, n
 
 
-def fmt_ci(m: float, lo: float, hi: float, digits: int = 3) -> str:
-    if math.isnan(m):
-        return "n/a"
-    if math.isnan(lo):
-        return f"{m:.{digits}f}"
-    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+fmt_ci = fmt_interval  # the name the report and its tests use
 
 
 # ---------------------------------------------------------------------------- collection
@@ -192,13 +196,6 @@ def _select(d: dict[str, Any], dotted: str) -> Any:
     return cur
 
 
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path.name}: {err}") from None
-
-
 def _metrics_of(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
     out = {}
     for k, v in d.items():
@@ -228,13 +225,13 @@ _PROGRESS_KEYS = ("eval/episodes_scored", "eval/episodes_total", "llm/calls", "l
 def _train_run(d: Path, partial: bool = False) -> Run:
     """A finished train run; with ``partial``, also the LLM alone paused by its call budget (its
     metrics cover the episodes it has scored)."""
-    cfg = _read_json(d / "config.json")
-    meta = _read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+    cfg = read_json(d / "config.json")
+    meta = read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
     final_file = d / "final_metrics.json"
     if not final_file.is_file():
         ckpt = d / "checkpoints" / "last.pt"
         raise LookupError("unfinished: no final_metrics.json" + (" (a checkpoint to resume from)" if ckpt.is_file() else ""))
-    final = _read_json(final_file)
+    final = read_json(final_file)
     tr = cfg.get("trainer", {})
     frames, episodes = int(final.get("frames", 0)), int(final.get("episodes", 0))
     if final.get("eval/complete", 1) == 0 and not partial:  # the LLM alone, paused by its call budget
@@ -278,7 +275,7 @@ def _advisor_calls(run_dir: Path, final: dict[str, Any]) -> str | None:
 
 
 def _eval_run(d: Path) -> Run:
-    rec = _read_json(d / "evaluation.json")
+    rec = read_json(d / "evaluation.json")
     try:
         spec, ex, meta = rec["spec"], rec.get("experiment") or {}, rec.get("meta") or {}
         metrics = _metrics_of(rec["metrics"])
@@ -351,10 +348,7 @@ def final_episode_rows(run: Run) -> list[dict[str, str]] | None:
     """The episodes of a run's final evaluation (``episodes.csv`` beside a train run's final
     metrics, or beside an evaluation's ``evaluation.json``), or None when it kept none."""
     f = (train_eval_dir(run.path, run.frames) if run.kind == "train" else run.path) / "episodes.csv"
-    if not f.is_file():
-        return None
-    with f.open(newline="") as fh:
-        return list(csv.DictReader(fh)) or None
+    return read_rows(f) or None
 
 
 def episode_grid(runs: list[Run], scenarios: list[int] | None = None) -> Grid | None:
@@ -405,31 +399,17 @@ def aggregate_rows(runs: list[Run], keys: dict[str, Any] | None = None,
     return row
 
 
-def _write_text(path: Path, text: str) -> None:
-    atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
-
-
-def _write_csv(path: Path, rows: list[dict[str, Any]], fields: list[str] | None = None) -> None:
-    """``fields``: the columns a reader expects even when there is no row (else the rows' keys)."""
-    keys = list(dict.fromkeys(k for r in rows for k in r)) or fields or ["empty"]
-    buf = io.StringIO(newline="")
-    w = csv.DictWriter(buf, fieldnames=keys)
-    w.writeheader()
-    w.writerows(rows)
-    _write_text(path, buf.getvalue())
-
-
 def _md_table(rows: list[dict[str, Any]], first: list[str]) -> list[str]:
     calls = any(r.get("advisor_calls") for r in rows)
     head = first + list(METRICS) + ["seeds", "frames", "episodes", "wall s (mean)"] + (["advisor calls (rows answered, cached)"] if calls else []) + ["commits"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    cells = []
     for r in rows:
         mark = " (t)" if r.get("interval") == "t" and not math.isnan(r[f"{METRICS[0]}_lo"]) else ""
-        cells = [str(r[k]) for k in first] + [fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) + mark for m in METRICS]
-        cells += [f"{r['n_seeds']} ({r['seeds']})", r["frames"], r["episodes"], str(r.get("wall_s", ""))]
-        cells += ([r.get("advisor_calls", "")] if calls else []) + [r["commits"]]
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
+        cells.append({**{k: r[k] for k in first}, **{m: fmt_ci(r[m], r[f"{m}_lo"], r[f"{m}_hi"]) + mark for m in METRICS},
+                      "seeds": f"{r['n_seeds']} ({r['seeds']})", "frames": r["frames"], "episodes": r["episodes"],
+                      "wall s (mean)": r.get("wall_s", ""), "advisor calls (rows answered, cached)": r.get("advisor_calls", ""),
+                      "commits": r["commits"]})
+    return markdown_table(cells, head)
 
 
 def final_episodes(run: Run) -> dict[str, list[float]] | None:
@@ -491,21 +471,6 @@ def learned_rows(train_rows: list[dict[str, Any]], runs: dict[str, list[Run]] | 
 # ---------------------------------------------------------------------------- curves
 
 
-def read_scalar(run_dir: Path, name: str) -> list[tuple[float, float]]:
-    f = run_dir / "logs" / "scalars" / f"{name}.csv"
-    if not f.is_file():
-        return []
-    out = []
-    for line in f.read_text().splitlines():
-        parts = line.split(",")
-        if len(parts) >= 2:
-            try:
-                out.append((float(parts[0]), float(parts[1])))
-            except ValueError:
-                continue
-    return out
-
-
 def training_curve(run: Run, x: str) -> list[tuple[float, float]]:
     """The run's training episode return against frames (``x="frames"``) or against the
     training episodes ended so far (``x="episodes"``, from ``train/episodes`` at each step)."""
@@ -563,21 +528,6 @@ class Style:
         return {"color": c, "marker": mk, "linestyle": ls, "markersize": 5, "label": m}
 
 
-def _save(fig: Any, out: Path, stem: str, note: str) -> list[str]:
-    if note:
-        fig.text(0.01, -0.02, note, fontsize=7, ha="left", va="top", style="italic")  # below the axes' labels
-    files = []
-    for ext in ("png", "pdf"):
-        f = out / f"{stem}.{ext}"
-        # no creation date: a regenerated report changes a figure's bytes only when its content changes
-        fig.savefig(f, dpi=150, bbox_inches="tight", metadata={"CreationDate": None} if ext == "pdf" else None)
-        files.append(f.name)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return files
-
-
 def fig_training(runs: list[Run], style: Style, out: Path, note: str) -> list[str]:
     import matplotlib.pyplot as plt
 
@@ -604,7 +554,7 @@ def fig_training(runs: list[Run], style: Style, out: Path, note: str) -> list[st
         ax.set_title("Fig. 3: training curves (mean, 95% band over seeds)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
-        files += _save(fig, out, f"fig3_training_curves_{x}", note)
+        files += save_figure(fig, out, f"fig3_training_curves_{x}", note=note, dpi=FIGURE_DPI, tight=True)
     return files
 
 
@@ -639,7 +589,7 @@ def fig_lines(rows: list[dict[str, Any]], xkey: str, xlabel: str, title: str, st
     axes[0].legend(fontsize=6)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return _save(fig, out, stem, note)
+    return save_figure(fig, out, stem, note=note, dpi=FIGURE_DPI, tight=True)
 
 
 def fig_radar(rows: list[dict[str, Any]], style: Style, out: Path, note: str) -> list[str]:
@@ -660,7 +610,7 @@ def fig_radar(rows: list[dict[str, Any]], style: Style, out: Path, note: str) ->
     ax.set_ylim(0, 1)
     ax.set_title("Fig. 10: mean over all settings (outward is better)", fontsize=10)
     ax.legend(fontsize=6, loc="upper right", bbox_to_anchor=(1.35, 1.1))
-    return _save(fig, out, "fig10_summary_radar", note)
+    return save_figure(fig, out, "fig10_summary_radar", note=note, dpi=FIGURE_DPI, tight=True)
 
 
 # ---------------------------------------------------------------------------- the report
@@ -690,10 +640,10 @@ class _Writer:
     md: list[str] = field(default_factory=list)
 
     def table(self, name: str, rows: list[dict[str, Any]], first: list[str], heading: str, text: str = "") -> None:
-        _write_csv(self.out / f"{name}.csv", rows)
+        write_csv(self.out / f"{name}.csv", rows)
         self.result["tables"][name] = rows
         lines = [f"## {heading}", ""] + ([text, ""] if text else []) + _md_table(rows, first) + [""]
-        _write_text(self.out / f"{name}.md", "\n".join(lines))
+        write_text(self.out / f"{name}.md", "\n".join(lines))
         self.md.extend(lines)
 
     def figures(self, files: list[str], images: list[str] | None = None) -> None:
@@ -716,14 +666,14 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
         note = "NOTE " + note + " (beyond the paper, SPEC §10)"
     w = _Writer(out, Style([r.method for r in runs] or ["none"]), note,
                 {"runs": len(runs), "skipped": skipped, "tables": {}, "figures": []})
-    _write_csv(out / "runs.csv", [
+    write_csv(out / "runs.csv", [
         {"kind": r.kind, "sweep": r.sweep, "point": r.point, "method": r.method, "seed": r.seed,
          **{m: r.metrics.get(m) for m in METRICS}, "frames": r.frames, "episodes": r.episodes, "updates": r.updates,
          "wall_s": r.extra.get("wall_s"), "advisor_calls": r.extra.get("advisor_calls"),
          "world": r.world, "commit": r.commit, "dirty": r.dirty, "path": str(r.path.relative_to(root)), "command": r.command}
         for r in sorted(runs, key=lambda r: (r.sweep, r.point, method_key(r.method), r.seed))
     ])
-    _write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped], ["path", "reason"])
+    write_csv(out / "skipped.csv", [{"path": p, "reason": why} for p, why in skipped], ["path", "reason"])
     groups = group(runs)
     _train_section(w, runs, groups)
     _scenario_sections(w, runs, groups)
@@ -737,7 +687,7 @@ def build(root: Path, out: Path, command: str | None = None) -> dict[str, Any]:
     shown = display_path(root)
     command = command or shlex.join(["python", "-m", "uavlae.experiments.report", shown])
     text = _header(runs, skipped, worlds, shown, command) + w.md + _footer(root, runs, skipped)
-    _write_text(out / "report.md", "\n".join(text))
+    write_text(out / "report.md", "\n".join(text))
     result = w.result
     dump_json(out / "report.json", {k: v for k, v in result.items() if k != "tables"} | {"tables": result["tables"]})
     return result
@@ -753,7 +703,7 @@ def _train_section(w: _Writer, runs: list[Run], groups: dict[tuple[str, str, str
     w.table("train_final", train_rows, ["method"], "Final evaluation, default distribution (train sweep)",
             "The deterministic actor on the shared evaluation set, over its seeds [95% interval].")
     learned = learned_rows(train_rows, {k[2]: groups[k] for k in groups if k[0] == "train"})
-    _write_csv(w.out / "learned.csv", learned)
+    write_csv(w.out / "learned.csv", learned)
     w.result["tables"]["learned"] = learned
     w.md += ["## Learned? (DCR and SLR above the uniform-random policy's, non-overlapping 95% intervals)", "",
              "| method | DCR | random DCR | SLR | random SLR | learned |", "|---|---|---|---|---|---|"]
@@ -913,7 +863,7 @@ def equal_frames_rows(runs: list[Run]) -> list[dict[str, Any]]:
         for r in sac:
             f = train_eval_dir(r.path, frames) / "metrics.json"
             if f.is_file():
-                at.append(replace(r, metrics=_metrics_of(_read_json(f)), frames=frames, episodes=0,
+                at.append(replace(r, metrics=_metrics_of(read_json(f)), frames=frames, episodes=0,
                                               extra={}))
         if at:
             rows.append(aggregate_rows(at, {"method": "sac", "setting": f"train sweep, its evaluation at {frames} frames"}))
@@ -947,7 +897,7 @@ def llm_alone_rows(root: Path, runs: list[Run]) -> list[dict[str, Any]]:
     out = []
     for cfg_file in sorted((root / "train").glob("*/seed*/config.json")):
         d = cfg_file.parent
-        if _read_json(cfg_file).get("controller") != "llm" or not (d / "final_metrics.json").is_file():
+        if read_json(cfg_file).get("controller") != "llm" or not (d / "final_metrics.json").is_file():
             continue
         try:
             alone = _train_run(d, partial=True)
@@ -1002,7 +952,7 @@ def _fig_long(r: Run, style: Style, out: Path, note: str) -> list[str]:
     b.grid(alpha=0.3)
     fig.suptitle(f"Long run: {r.method} ({r.world}), seed {r.seed}", fontsize=10)
     fig.tight_layout()
-    return _save(fig, out, f"long_{r.method}", note)
+    return save_figure(fig, out, f"long_{r.method}", note=note, dpi=FIGURE_DPI, tight=True)
 
 
 def display_path(path: Path) -> str:

@@ -34,23 +34,16 @@ actor's action and sets ``"override_abort"`` for that row so
 warning naming that setting. An LLM endpoint that is down is not a failed row but the end of
 the run: the advisor raises its ``EndpointError`` through ``result()``.
 
-Advisors share one small protocol (duck-typed, see :class:`Advisor`)::
-
-    advise(td_rows, rows) -> (actions [n, 2] in [-1, 1], ok [n] bool)
-
-where ``td_rows`` is the tensordict of the triggered rows only (with its ``("state", ...)``
-entries) and ``rows`` their indices in the batch; an advisor that answers through several
-hands (the student advisor, :mod:`uavlae.policies.student`) returns a third tensor, each row's
-``action_source``. An advisor may expose ``source`` (the ``action_source`` value of its
-successful actions, default LLM), ``fallback`` (its own fallback, used when the policy's
-``fallback`` is None), ``snapshot()`` (counters), ``price()`` (an LLM's price per million
-tokens: :meth:`OverridePolicy.cost` then counts the money), ``close()``,
-``start(td_rows, rows)``: the same request sent without waiting, returning a handle whose
-``result()`` gives ``advise``'s answer (the LLM's requests are then in flight on the server
-while the caller works) and whose ``failures`` says what failed, and ``observe(td)``: called
-with the whole batch at every step the override is on, before any row is asked, by an advisor
-whose answers depend on what it remembers of earlier slots (the heuristics): it then keeps that
-memory per env row, however the set of triggered rows changes from slot to slot.
+Advisors implement one contract, :class:`uavlae.policies.advisor.Advisor` (re-exported here):
+``advise(td_rows, rows) -> (actions [n, 2] in [-1, 1], ok [n] bool)`` on the triggered rows only,
+and the hooks this module calls, each named there once with its default: ``source`` (the
+``action_source`` of its answered rows), ``start`` (the request sent without waiting: its
+handle's ``result()`` gives ``advise``'s answer while the LLM's requests are in flight on the
+server), ``observe`` (the whole batch at every step the override is on, for an advisor that
+remembers earlier slots), ``fallback`` (its own, for a policy given none), ``snapshot`` and
+``latencies`` (its counters), ``asks_llm`` and ``price`` (what :meth:`OverridePolicy.cost`
+counts), ``state_dict`` (checkpointed with this module) and ``close``. An advisor that answers through several hands (the student advisor,
+:mod:`uavlae.policies.student`) returns a third tensor, each row's ``action_source``.
 
 A step in two halves: :meth:`OverridePolicy.begin` decides the triggered rows from the state
 alone and starts their advice; :meth:`OverridePolicy.finish` runs the actor, waits for the
@@ -93,14 +86,13 @@ or a pickle (``LLMAdvisor.__getstate__`` drops it).
 
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import logging
 import math
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -108,10 +100,22 @@ from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-POLICY, LLM, HEURISTIC, FALLBACK, STUDENT, SCRIPTED = 0, 1, 2, 3, 4, 5
-SOURCE_NAMES = {POLICY: "policy", LLM: "llm", HEURISTIC: "heuristic", FALLBACK: "fallback", STUDENT: "student",
-                SCRIPTED: "scripted"}
-ADVICE_SOURCES = (LLM, HEURISTIC, STUDENT, SCRIPTED)  # an advisor's own answer was executed
+from uavlae.policies.advisor import (  # re-exported: the advisors and their sources are imported from here
+    ADVICE_SOURCES,
+    FALLBACK,
+    HEURISTIC,
+    LLM,
+    POLICY,
+    SCRIPTED,
+    SOURCE_NAMES,
+    STUDENT,
+    Advisor,
+    Handle,
+    HeuristicAdvisor,
+    LLMAdvisorAdapter,
+    ScriptedAdvisor,
+)
+
 MODES = ("proximity", "fixed_prob", "always", "never")
 FALLBACKS = ("policy", "heuristic", "end_episode")
 # the env's distances to the nearest obstacle of each kind (docs/env_contract.md)
@@ -132,26 +136,9 @@ WARN_EVERY_S = 60.0
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "ADVICE_SOURCES", "Advisor", "FALLBACK", "HEURISTIC", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter",
+    "ADVICE_SOURCES", "Advisor", "FALLBACK", "HEURISTIC", "Handle", "HeuristicAdvisor", "LLM", "LLMAdvisorAdapter",
     "OverridePolicy", "POLICY", "Pending", "SCRIPTED", "SOURCE_NAMES", "STUDENT", "ScriptedAdvisor",
 ]
-
-
-class Advisor(Protocol):
-    """What :class:`OverridePolicy` needs from an advisor."""
-
-    def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]: ...
-
-
-class _Answered:
-    """The handle of an advisor without ``start``: answered when asked."""
-
-    def __init__(self, answer: tuple[Tensor, Tensor]):
-        self.answer = answer
-        self.done_at = time.perf_counter()
-
-    def result(self) -> tuple[Tensor, Tensor]:
-        return self.answer
 
 
 @dataclass
@@ -162,222 +149,13 @@ class Pending:
     held: Tensor  # [B] bool: triggered rows executing a held answer (no request)
     skipped: Tensor  # [B] bool: triggered rows the call budget left to the actor
     rows: Tensor  # [n] int64: the rows sent to the advisor
-    handle: Any  # the advisor's handle (result()), None when no row was sent
+    handle: Handle | None  # the advisor's handle (result()), None when no row was sent
     started_at: float  # time.perf_counter() when the requests were sent
 
     @property
     def done_at(self) -> float | None:
         """When the answers arrived (None: still in flight, or nothing was asked)."""
-        return getattr(self.handle, "done_at", None) if self.handle is not None else None
-
-
-# ---------------------------------------------------------------------------- advisors
-
-
-class HeuristicAdvisor:
-    """The greedy controller (or the planner) as an advisor (SAC+Heuristic); it never fails.
-
-    Args:
-        heuristic: a :class:`uavlae.policies.greedy.GreedyPolicy` or
-            :class:`uavlae.policies.heuristic.HeuristicPolicy`.
-
-    The heuristics remember earlier slots (target, detour side, stall counter, homing latch; the
-    planner's plans). Under the override the triggered rows change from slot to slot, so the
-    advisor follows every row: :meth:`observe` steps the heuristic on the whole batch at every
-    step the override is on, and :meth:`advise` answers the asked rows from that step. Each
-    row's answer is then the one the heuristic would give flying that env row every slot, as it
-    does when flown alone: the advisor is the baseline it is compared with. Called without
-    :meth:`observe` (a direct call), it acts on the given rows alone.
-    """
-
-    source = HEURISTIC
-
-    def __init__(self, heuristic: Any):
-        self.heuristic = heuristic
-        self.calls = 0
-        self.rows_advised = 0
-        self._step: Tensor | None = None  # this step's action of every row, from observe()
-
-    def observe(self, td: TensorDictBase) -> None:
-        self._step = self.heuristic.act(td.get("state"))
-
-    def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
-        self.calls += 1
-        self.rows_advised += int(rows.numel())
-        step, self._step = self._step, None
-        action = step[rows.to(step.device)] if step is not None else self.heuristic.act(td_rows.get("state"))
-        return action, torch.ones(action.shape[0], dtype=torch.bool, device=action.device)
-
-    def snapshot(self, reset: bool = False) -> dict[str, float]:
-        out = {"calls": self.calls, "rows_advised": self.rows_advised}
-        if reset:
-            self.calls = self.rows_advised = 0
-        return out
-
-    def state_dict(self) -> dict[str, Any]:
-        """The heuristic's memory and the counters (checkpoints: exact resume)."""
-        return {"cache": self.heuristic.cache_state(), "calls": self.calls, "rows_advised": self.rows_advised}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.heuristic.load_cache_state(state["cache"])
-        self.calls, self.rows_advised = int(state["calls"]), int(state["rows_advised"])
-
-
-class ScriptedAdvisor:
-    """Advisors of known, poor quality, for measuring what advice is worth (beyond the paper):
-    ``"hover"`` answers a zero velocity (the DCU stays where it is), ``"random"`` a uniform
-    action in [-1, 1]^2 from its own seeded generator (checkpointed). Neither ever fails.
-
-    Args:
-        kind: ``"hover"`` | ``"random"``.
-        seed: seeds ``"random"``'s generator.
-    """
-
-    source = SCRIPTED
-    KINDS = ("hover", "random")
-
-    def __init__(self, kind: str, seed: int = 0):
-        if kind not in self.KINDS:
-            raise ValueError(f"a scripted advisor is one of {list(self.KINDS)}, got {kind!r}")
-        self.kind = kind
-        self.generator = torch.Generator().manual_seed(int(seed))
-        self.calls = 0
-        self.rows_advised = 0
-
-    def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
-        self.calls += 1
-        n = int(rows.numel())
-        self.rows_advised += n
-        if self.kind == "hover":
-            action = torch.zeros(n, 2)
-        else:
-            action = torch.rand(n, 2, generator=self.generator) * 2.0 - 1.0
-        return action, torch.ones(n, dtype=torch.bool)
-
-    def snapshot(self, reset: bool = False) -> dict[str, float]:
-        out = {"calls": self.calls, "rows_advised": self.rows_advised}
-        if reset:
-            self.calls = self.rows_advised = 0
-        return out
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"generator": self.generator.get_state(), "calls": self.calls, "rows_advised": self.rows_advised}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.generator.set_state(state["generator"])
-        self.calls, self.rows_advised = int(state["calls"]), int(state["rows_advised"])
-
-
-class LLMAdvisorAdapter:
-    """An :class:`uavlae.llm.LLMAdvisor` behind the advisor protocol.
-
-    The triggered rows become :class:`~uavlae.llm.AdvisorState` objects (the env's raw state
-    and the world limits of ``env_cfg``), all go to ``advise_sync`` in one call so the
-    advisor sends them concurrently (up to its ``max_concurrency``), and each validated
-    velocity becomes the action ``v / v_max`` (SPEC §2). An ``AdviceFailure`` gives ``ok``
-    False; the override policy applies its fallback.
-
-    Args:
-        llm: the advisor (owns its client, cache and possibly a local server).
-        env_cfg: the env's config (``EnvConfig`` or anything with its attributes).
-        timeout: seconds to wait for one step's answers (None: the advisor's own limits).
-    """
-
-    source = LLM
-
-    def __init__(self, llm: Any, env_cfg: Any, timeout: float | None = None):
-        from uavlae.envs.config import make_env_config
-        from uavlae.llm import WorldLimits
-
-        self.llm = llm
-        self.env_cfg = make_env_config(env_cfg)
-        self.limits = WorldLimits.from_env_config(self.env_cfg)
-        self.timeout = timeout
-        self.run_latencies: list[float] = []  # the windows already reset, for the run's quantiles
-
-    def advise(self, td_rows: TensorDictBase, rows: Tensor) -> tuple[Tensor, Tensor]:
-        return self.start(td_rows, rows).result()
-
-    def start(self, td_rows: TensorDictBase, rows: Tensor) -> Any:
-        """Send the rows' requests and return at once; ``result()`` waits for the answers."""
-        return self.ask(self.states(td_rows))
-
-    def states(self, td_rows: TensorDictBase) -> list[Any]:
-        """The rows as the LLM sees them (:class:`~uavlae.llm.AdvisorState`, of its view)."""
-        from uavlae.llm import advisor_states_from_tensordict
-
-        n = td_rows.batch_size[0]
-        cfg = getattr(self.llm, "cfg", None)
-        local = getattr(cfg, "view", "full") == "local"  # the LLM alone: what lies within view_radius
-        return advisor_states_from_tensordict(td_rows, list(range(n)), self.limits,
-                                              view_radius=cfg.view_radius if local else None)
-
-    def ask(self, states: list[Any]) -> "_LLMHandle":
-        """The LLM's answers to ``states``, in flight (answered at once by an advisor that has
-        only the blocking call)."""
-        submit = getattr(self.llm, "submit", None)
-        if submit is None:
-            future: concurrent.futures.Future = concurrent.futures.Future()
-            future.set_result(self.llm.advise_sync(states, timeout=self.timeout))
-            return _LLMHandle(self, future)
-        return _LLMHandle(self, submit(states))
-
-    def price(self) -> tuple[float, float, float, str] | None:
-        """(input, cached input, output) per million tokens and the currency; None without a price."""
-        cfg = getattr(self.llm, "cfg", None)
-        price = cfg.price() if cfg is not None else None
-        return None if price is None else (*price, cfg.price_currency)
-
-    def _actions(self, results: list[Any]) -> tuple[Tensor, Tensor]:
-        v_max = self.limits.v_max
-        actions = torch.zeros(len(results), 2)
-        ok = torch.zeros(len(results), dtype=torch.bool)
-        for i, r in enumerate(results):
-            if r.ok:
-                actions[i] = torch.tensor(r.action(v_max))
-                ok[i] = True
-        return actions.clamp(-1.0, 1.0), ok
-
-    def snapshot(self, reset: bool = False) -> dict[str, float]:
-        if reset:  # the run's per-call latencies outlive the logging window
-            self.run_latencies.extend(self.llm.stats.latencies)
-        return self.llm.stats.snapshot(reset=reset)
-
-    def latencies(self) -> list[float]:
-        """Every answered HTTP call's latency in this run, seconds (the current window too)."""
-        return [*self.run_latencies, *self.llm.stats.latencies]
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"run_latencies": torch.tensor(self.run_latencies, dtype=torch.float64)}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.run_latencies[:] = [float(x) for x in state["run_latencies"].tolist()]
-
-    def close(self) -> None:
-        self.llm.close()
-
-
-class _LLMHandle:
-    """The LLM's answers for one step, in flight; ``done_at`` is set when they arrive."""
-
-    def __init__(self, adapter: LLMAdvisorAdapter, future: Any):
-        self.adapter = adapter
-        self.future = future
-        self.done_at: float | None = None
-        self.failures: list[str] = []  # what failed, one line per failed row, once answered
-        future.add_done_callback(self._arrived)
-
-    def _arrived(self, _future: Any) -> None:
-        self.done_at = time.perf_counter()
-
-    def answers(self) -> list[Any]:
-        """The advisor's results (Advice or AdviceFailure), in order; raises its EndpointError."""
-        results = self.future.result(self.adapter.timeout)
-        self.failures = [f"{r.kind.value}: {r.detail}" for r in results if not r.ok]
-        return results
-
-    def result(self) -> tuple[Tensor, Tensor]:
-        return self.adapter._actions(self.answers())
+        return None if self.handle is None else self.handle.done_at
 
 
 # ---------------------------------------------------------------------------- the module
@@ -389,7 +167,8 @@ class OverridePolicy(TensorDictModuleBase):
     Args:
         actor: any module reading ``td`` and writing ``"action"`` ``[B, 2]`` (its other
             outputs, e.g. ``"action_log_prob"``, are left as the actor wrote them).
-        advisor: see the module docstring; ``None`` means the actor alone (mode ignored).
+        advisor: an :class:`uavlae.policies.advisor.Advisor`; ``None`` means the actor alone
+            (mode ignored).
         mode: ``"proximity"`` | ``"fixed_prob"`` | ``"always"`` | ``"never"``.
         d_th: proximity threshold, metres (SPEC §8: 15 m).
         fp: trigger probability of ``"fixed_prob"`` (paper: 0.3, 0.4, 0.5, 1.0).
@@ -433,8 +212,11 @@ class OverridePolicy(TensorDictModuleBase):
             raise ValueError(f"override.d_th must be a finite distance >= 0 m, got {d_th!r}")
         if not 0.0 <= fp <= 1.0:
             raise ValueError(f"override.fp must be in [0, 1], got {fp!r}")
+        if advisor is not None and not isinstance(advisor, Advisor):
+            raise TypeError(f"an advisor implements uavlae.policies.advisor.Advisor (the hooks this policy calls, "
+                            f"each with its default); got {type(advisor).__name__}")
         if fallback is None:
-            fallback = getattr(advisor, "fallback", None) or "policy"
+            fallback = (None if advisor is None else advisor.fallback) or "policy"
         if fallback not in FALLBACKS:
             raise ValueError(f"override.fallback must be one of {list(FALLBACKS)}, got {fallback!r}")
         if heuristic is None and isinstance(advisor, HeuristicAdvisor):
@@ -574,10 +356,9 @@ class OverridePolicy(TensorDictModuleBase):
     def begin(self, td: TensorDictBase) -> Pending:
         """The first half of a step: the triggered rows (from the state alone) and their advice,
         sent; held answers and the call budget decide which rows are asked."""
-        observe = getattr(self.advisor, "observe", None)
-        if observe is not None and self.override_active:
+        if self.override_active:
             with torch.no_grad():
-                observe(td)  # a stateful advisor follows every row, every slot
+                self.advisor.observe(td)  # a stateful advisor follows every row, every slot
         trig = self.trigger(td)
         B = trig.shape[0]
         none = torch.zeros(B, dtype=torch.bool, device=trig.device)
@@ -597,9 +378,8 @@ class OverridePolicy(TensorDictModuleBase):
         started = time.perf_counter()
         if rows.numel():
             self.calls_used += int(rows.numel())
-            start = getattr(self.advisor, "start", None)
             with torch.no_grad():
-                handle = start(td[rows], rows) if start is not None else _Answered(self.advisor.advise(td[rows], rows))
+                handle = self.advisor.start(td[rows], rows)
         return Pending(trig=trig, held=held, skipped=skipped, rows=rows, handle=handle, started_at=started)
 
     def finish(self, td: TensorDictBase, pending: Pending) -> TensorDictBase:
@@ -636,7 +416,7 @@ class OverridePolicy(TensorDictModuleBase):
             if len(answer) > 2:  # an advisor that answers through several hands names each row's
                 source[good] = answer[2].to(device=source.device, dtype=source.dtype).reshape(-1)[ok]
             else:
-                source[good] = int(getattr(self.advisor, "source", LLM))
+                source[good] = int(self.advisor.source)
             if bad.numel():
                 self._warn_failed(pending, int(bad.numel()), int(rows.numel()))
                 source[bad] = FALLBACK
@@ -664,7 +444,7 @@ class OverridePolicy(TensorDictModuleBase):
         now = time.monotonic()
         if now - self._warned_at < WARN_EVERY_S:
             return
-        why = sorted(set(getattr(pending.handle, "failures", None) or []))
+        why = sorted(set(pending.handle.failures))
         since = self._failed_quiet - 1
         quiet = f"; {since} step(s) with failures since the last warning" if self._warned_at > -math.inf else ""
         log.warning("advice failed on %d of %d asked row(s)%s; advisor.fallback=%s acts there%s", n_bad, n_asked,
@@ -740,6 +520,17 @@ class OverridePolicy(TensorDictModuleBase):
         c["actor_agree"] = c.get("agree_rows", 0) / gap_rows if gap_rows else nan
         return c
 
+    def _with_settings(self, counts: dict[str, Any]) -> dict[str, Any]:
+        """``counts`` with their rates, and the settings that shaped them: the call budget, the
+        held slots, the phase-out and the agreement tolerance."""
+        c = self._rates(dict(counts))
+        c["calls_used"] = self.calls_used
+        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
+        c["hold_steps"] = self.hold_steps
+        c["phase"] = self.phase()
+        c["agree_tol"] = self.agree_tol
+        return c
+
     def snapshot(self, reset: bool = False) -> dict[str, float]:
         """Counters since the last reset: frames acted with the override on, ``triggered``,
         ``source/<name>``, ``aborts``, ``held`` (triggered rows that executed a held answer),
@@ -750,15 +541,9 @@ class OverridePolicy(TensorDictModuleBase):
         (fallbacks / triggered), ``calls_used`` / ``max_calls`` (the run's budget; -1: none),
         and the advisor's own counters under ``advisor/`` (the LLM's: requests, calls, cache
         hits, retries, failures by kind, tokens, latency quantiles)."""
-        c = self._rates(dict(self.counts))
-        c["calls_used"] = self.calls_used
-        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
-        c["hold_steps"] = self.hold_steps
-        c["phase"] = self.phase()
-        c["agree_tol"] = self.agree_tol
-        snap = getattr(self.advisor, "snapshot", None)
-        if snap is not None:
-            adv = snap(reset=reset)
+        c = self._with_settings(self.counts)
+        if self.advisor is not None:
+            adv = self.advisor.snapshot(reset=reset)
             c.update({f"advisor/{k}": v for k, v in adv.items()})
             if reset:
                 for k in ADVISOR_COUNTS:
@@ -776,21 +561,15 @@ class OverridePolicy(TensorDictModuleBase):
         """The run's counters (never reset, checkpointed): :meth:`snapshot`'s names, the
         advisor's counts summed over the whole run and, for an LLM advisor, its per-call
         latency quantiles over every answered call (``advisor/latency_p50_s``, ``_p95_s``)."""
-        c = self._rates(dict(self.totals))
-        c["calls_used"] = self.calls_used
-        c["max_calls"] = -1 if self.max_calls is None else self.max_calls
-        c["hold_steps"] = self.hold_steps
-        c["phase"] = self.phase()
-        c["agree_tol"] = self.agree_tol
-        snap = getattr(self.advisor, "snapshot", None)
-        if snap is not None:
-            window = snap(reset=False)
+        c = self._with_settings(self.totals)
+        if self.advisor is not None:
+            window = self.advisor.snapshot(reset=False)
             for k in ADVISOR_COUNTS:
                 if k in window or self.advisor_totals[k]:
                     c[f"advisor/{k}"] = self.advisor_totals[k] + float(window.get(k, 0) or 0)
-        lat = getattr(self.advisor, "latencies", None)
+        lat = None if self.advisor is None else self.advisor.latencies()
         if lat is not None:
-            xs = sorted(lat())
+            xs = sorted(lat)
             for name, p in (("latency_p50_s", 0.5), ("latency_p95_s", 0.95)):
                 c[f"advisor/{name}"] = xs[min(len(xs) - 1, int(p * len(xs)))] if xs else float("nan")
         for what in ("audit", "llm"):  # the student's mean velocity error (m/s) against the LLM
@@ -808,8 +587,7 @@ class OverridePolicy(TensorDictModuleBase):
         latencies summed) and seconds the loop waited for answers after the work it did
         meanwhile; and, for an endpoint with a price (``llm.price_*_per_mtok``), the money
         (``money``, in ``llm.price_currency``; NaN without a price)."""
-        price = getattr(self.advisor, "price", None)
-        if price is None:
+        if self.advisor is None or not self.advisor.asks_llm:
             return {}
         t = self.run_totals()
         tin, tcached, tout = (float(t.get(f"advisor/{k}", 0.0)) for k in
@@ -821,27 +599,25 @@ class OverridePolicy(TensorDictModuleBase):
                "tokens_in": tin, "tokens_in_cached": tcached, "tokens_out": tout,
                "llm_s": float(t.get("advisor/call_s", 0.0)), "wait_s": float(t.get("advice_wait_s", 0.0)),
                "money": math.nan}
-        p = price()
+        p = self.advisor.price()
         if p is not None:  # Eq.: (uncached in * p_in + cached in * p_cached + out * p_out) / 1e6
             p_in, p_cached, p_out, _ = p
             out["money"] = ((tin - tcached) * p_in + tcached * p_cached + tout * p_out) / 1e6
         return out
 
     def currency(self) -> str | None:
-        price = getattr(self.advisor, "price", None)
-        p = price() if price is not None else None
+        p = None if self.advisor is None else self.advisor.price()
         return None if p is None else p[3]
 
     # ------------------------------------------------------------------ state
     def get_extra_state(self) -> dict[str, Any]:
         # an advisor with state that shapes its answers (the heuristic's plan cache) saves it too;
         # the held answers and the budget's counter shape the next steps, so they travel as well
-        adv = getattr(self.advisor, "state_dict", None)
         return {"generator": self.generator.get_state(), "counts": dict(self.counts),
                 "totals": dict(self.totals), "advisor_totals": dict(self.advisor_totals),
                 "calls_used": self.calls_used,
                 "hold": None if self.hold is None else {k: v.clone() for k, v in self.hold.items()},
-                "advisor": adv() if adv is not None else None}
+                "advisor": None if self.advisor is None else self.advisor.state_dict()}
 
     def set_extra_state(self, state: Mapping[str, Any]) -> None:
         self.generator.set_state(state["generator"])
@@ -851,7 +627,7 @@ class OverridePolicy(TensorDictModuleBase):
         self.calls_used = int(state.get("calls_used", 0))
         hold = state.get("hold")
         self.hold = None if hold is None else {k: v.clone() for k, v in hold.items()}
-        if state.get("advisor") is not None and hasattr(self.advisor, "load_state_dict"):
+        if state.get("advisor") is not None and self.advisor is not None:
             self.advisor.load_state_dict(state["advisor"])
 
     def __deepcopy__(self, memo: dict) -> "OverridePolicy":
@@ -863,9 +639,8 @@ class OverridePolicy(TensorDictModuleBase):
         )
 
     def close(self) -> None:
-        close = getattr(self.advisor, "close", None)
-        if close is not None:
-            close()
+        if self.advisor is not None:
+            self.advisor.close()
 
     def extra_repr(self) -> str:
         return (f"mode={self.mode!r}, d_th={self.d_th}, fp={self.fp}, fallback={self.fallback!r}, "

@@ -40,6 +40,7 @@ import copy
 import math
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -47,8 +48,9 @@ from pydantic import Field, model_validator
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
-from uavlae.policies.override import LLM, STUDENT
-from uavlae.validation import StrictModel
+from uavlae.llm import GroundEquipment, OtherUAV
+from uavlae.policies.advisor import LLM, STUDENT, Advisor, Handle, LLMAdvisorAdapter, Price
+from uavlae.validation import StrictModel, parse_model
 
 ENTITY_TYPES = ("bz", "nfz", "rz", "ge", "ou")
 N_DCU = 8  # x/X, y/Y, vx/v_max, vy/v_max, in an RZ, landing centre dx/X, dy/Y, faster than v_limit
@@ -102,8 +104,6 @@ class StudentConfig(StrictModel):
 
 
 def make_student_config(cfg: Any) -> StudentConfig:
-    from uavlae.validation import parse_model
-
     return parse_model(StudentConfig, cfg, prefix="advisor.student", title="student")
 
 
@@ -120,10 +120,6 @@ def _r(v: float, nd: int) -> float:
 
 def shown_state(s: Any, observation: str = "compact") -> Any:
     """``s`` with every number the student reads rounded as the observation writes it."""
-    from dataclasses import replace
-
-    from uavlae.llm import GroundEquipment, OtherUAV
-
     p, v, gp, gd, op, ov, z = _DECIMALS[observation]
     rect = lambda r: tuple(_r(c, z) for c in r)  # noqa: E731
     return replace(
@@ -167,8 +163,8 @@ def encode(states: Sequence[Any], cfg: StudentConfig, observation: str = "compac
                                   remaining, vel[0] / vm, vel[1] / vm])
             return d, dx, dy
 
-        for kind in ("bz", "nfz", "rz"):
-            for r in getattr(s, kind):
+        for kind, zones in (("bz", s.bz), ("nfz", s.nfz), ("rz", s.rz)):
+            for r in zones:
                 px, py = _nearest_point(r, x, y)
                 centre, half = ((r[0] + r[2]) / 2, (r[1] + r[3]) / 2), ((r[2] - r[0]) / 2, (r[3] - r[1]) / 2)
                 d, dx, dy = add(kind, px, py, centre, half)
@@ -340,26 +336,27 @@ class Student:
 # ---------------------------------------------------------------------------- the advisor
 
 
-class AmortizedAdvisor:
-    """The student and the LLM behind the advisor protocol (module docstring).
+class AmortizedAdvisor(Advisor):
+    """The student and the LLM behind the advisor contract (module docstring).
 
     Args:
-        llm: a :class:`uavlae.policies.override.LLMAdvisorAdapter` (any endpoint of the ``llm`` group).
+        llm: a :class:`uavlae.policies.advisor.LLMAdvisorAdapter` (any endpoint of the ``llm`` group).
         cfg: the student's numbers (``advisor.student``).
         seed: seeds the student (initialisation, minibatches) and, apart, the audit draws.
     """
 
-    def __init__(self, llm: Any, cfg: StudentConfig | Mapping[str, Any] | None = None, seed: int = 0):
+    source = LLM  # result() gives each row's own source: LLM or STUDENT
+    asks_llm = True
+
+    def __init__(self, llm: LLMAdvisorAdapter, cfg: StudentConfig | Mapping[str, Any] | None = None, seed: int = 0):
         self.llm = llm
         self.cfg = cfg if isinstance(cfg, StudentConfig) else make_student_config(cfg)
-        self.observation = getattr(getattr(llm.llm, "cfg", None), "observation", "compact")
+        self.observation = llm.observation  # the student sees what the prompt shows the LLM
         self.student = Student(self.cfg, seed=seed)
         self.audit_generator = torch.Generator().manual_seed(int(seed) + 1)
         self.llm_rows = 0  # rows sent to the LLM in the run (max_llm_rows)
         self.credit = float(self.cfg.share_allowance)  # rows the LLM may still answer under max_llm_share
         self.reset_counts()
-
-    source = LLM  # result() gives each row's own source: LLM or STUDENT
 
     def reset_counts(self) -> None:
         self.counts: dict[str, float] = {"rows": 0, "llm_rows": 0, "student_rows": 0,
@@ -476,7 +473,7 @@ class AmortizedAdvisor:
     def latencies(self) -> list[float]:
         return self.llm.latencies()
 
-    def price(self) -> Any:
+    def price(self) -> Price | None:
         return self.llm.price()
 
     def state_dict(self) -> dict[str, Any]:
@@ -496,7 +493,7 @@ class AmortizedAdvisor:
         self.llm.close()
 
 
-class _AmortizedHandle:
+class _AmortizedHandle(Handle):
     """One step's answers: the student's now, the LLM's in flight; merged (and learned from) by ``result()``."""
 
     def __init__(self, owner: AmortizedAdvisor, handle: Any, asked: Tensor, audit: Tensor, mean: Tensor,
@@ -510,8 +507,8 @@ class _AmortizedHandle:
         return self.created if self.handle is None else self.handle.done_at
 
     @property
-    def failures(self) -> list[str]:
-        return [] if self.handle is None else self.handle.failures
+    def failures(self) -> Sequence[str]:  # type: ignore[override]
+        return () if self.handle is None else self.handle.failures
 
     def result(self) -> tuple[Tensor, Tensor, Tensor]:
         return self.owner._merge(self)
