@@ -201,9 +201,15 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
     return cells
 
 
+# the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
+LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_teach",
+          "saclag_ego_filter_shaped", "saclagln_ego_filter_shaped", "pilot")
+
+
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
-    """The rungs of a stage in the order their runs were recorded (the ladder's order)."""
-    return list(dict.fromkeys(r["rung"] for r in runs if r["stage"] == stage))
+    """The rungs of a stage in the ladder's order."""
+    rungs = list(dict.fromkeys(r["rung"] for r in runs if r["stage"] == stage))
+    return sorted(rungs, key=lambda r: (LADDER.index(r) if r in LADDER else len(LADDER), rungs.index(r)))
 
 
 def _time_to_pilot(curves: list[dict[str, str]], stage: str, rung: str, ecr: float | None) -> str:
