@@ -486,17 +486,19 @@ RUNG_WORLD = +exp=sac safety_filter.mode=deploy
 RUNG_EGO = $(RUNG_WORLD) env.obs_frame=ego
 RUNG_FILTER = +exp=sac env.obs_frame=ego safety_filter.mode=train_and_deploy
 RUNG_SHAPED = $(RUNG_FILTER) env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic
+# the filter's correction priced in the reward, so the actor learns not to lean on the filter
+RUNG_PENALTY = $(RUNG_SHAPED) safety_filter.penalty=1.0
 RUNG_TEACH = +exp=sac_heuristic_planner env.obs_frame=ego safety_filter.mode=train_and_deploy \
 	env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic algo.clone_weight=0.4 \
 	algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
 RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.reward.progress_weight=8.0 \
 	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
-.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach \
+.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-teach \
 	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report
-pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-teach pilot-screen-lag \
+pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-teach pilot-screen-lag \
 	pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
@@ -505,6 +507,8 @@ pilot-screen-filter: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_FILTER) experiment.method=sac_ego_filter
 pilot-screen-shaped: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_SHAPED) experiment.method=sac_ego_filter_shaped
+pilot-screen-penalty: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_PENALTY) experiment.method=sac_ego_filter_shaped_penalty
 pilot-screen-teach: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_TEACH) experiment.method=sac_ego_filter_shaped_teach
 pilot-screen-lag: $(STAMP)

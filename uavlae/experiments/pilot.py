@@ -202,7 +202,8 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 
 
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
-LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_teach",
+LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
+          "sac_ego_filter_shaped_teach",
           "saclag_ego_filter_shaped", "saclagln_ego_filter_shaped", "pilot")
 
 
