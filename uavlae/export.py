@@ -24,6 +24,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from uavlae.checkpoint import load_checkpoint
+from uavlae.envs import make_env_config
+from uavlae.envs.scenario import sample_scenarios
+from uavlae.envs.world import ObservationLayout, initial_state, nearest_distances
 from uavlae.errors import ConfigError
 from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 from uavlae.files import atomic_write
@@ -101,16 +105,12 @@ class Pilot(nn.Module):
 
     def __init__(self, actor: DeterministicActor, env_cfg: Any, safety: Any):
         super().__init__()
-        from uavlae.envs.world import ObservationLayout
-
         self.actor = actor
         self.safety = safety
         self.env_cfg = env_cfg
         self.layout = ObservationLayout(env_cfg)
 
     def forward(self, state: dict[str, torch.Tensor], use_filter: torch.Tensor) -> torch.Tensor:
-        from uavlae.envs.world import nearest_distances
-
         s = dict(state)
         s.update(nearest_distances(s, self.env_cfg))
         action = self.actor(self.layout.build(s))
@@ -121,9 +121,6 @@ class Pilot(nn.Module):
 def export_pilot(learner: Any, action_spec: Any, env_cfg: Any, safety: Any, path: str | Path,
                  meta: dict[str, Any]) -> Path:
     """Export the actor and its safety filter as one :class:`Pilot` program (any batch size)."""
-    from uavlae.envs.world import initial_state
-    from uavlae.envs.scenario import sample_scenarios
-
     module = Pilot(deterministic_actor_module(learner, action_spec), env_cfg, safety).eval()
     scen = sample_scenarios(env_cfg, 2, torch.Generator().manual_seed(0))
     example = {k: v for k, v in initial_state(scen.to_dict(), env_cfg).items() if k in PILOT_STATE_KEYS}
@@ -137,9 +134,6 @@ def export_pilot(learner: Any, action_spec: Any, env_cfg: Any, safety: Any, path
 def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any = None) -> Path:
     """Export a checkpoint's actor: with a safety filter (``safety_cfg``, else the run's own
     ``safety_filter``; mode not ``off``) as a :class:`Pilot`, else the actor alone."""
-    from uavlae.checkpoint import load_checkpoint
-    from uavlae.envs import make_env_config
-
     state, file = load_checkpoint(checkpoint)
     saved = OmegaConf.create(state["config"])
     env_cfg = make_env_config(saved.env)
