@@ -468,8 +468,8 @@ advice-report: $(STAMP)
 # the filter at deployment and alone, so "deploy only" is every unfiltered rung's filtered row),
 # shaping from the planner's distance field (training only), teaching from the planner (cloning
 # and a phase-out, as the advice study's teach), the Lagrangian constraint, a stronger learner.
-# [decision] The cheap ingredients come first: the Lagrangian (autograd, ~4x SAC's fused update)
-# and the wider LayerNorm networks (~9x) take most of the compute, so they are added last, on the
+# [decision] The cheap ingredients come first: the Lagrangian (autograd) and the wider LayerNorm
+# networks, each several times SAC's fused update, take most of the compute, so they are added last, on the
 # best cheap rung. Screening: 1M frames, the tuning seeds; the verdict: the chosen recipe
 # (+exp=pilot) at 2.5M frames on seeds 0-4, also flown on the held-out set. Every stage is a
 # resumable sweep: run the same command again. PILOT_JOBS: runs side by side (one per core).
