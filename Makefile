@@ -488,18 +488,24 @@ RUNG_FILTER = +exp=sac env.obs_frame=ego safety_filter.mode=train_and_deploy
 RUNG_SHAPED = $(RUNG_FILTER) env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic
 # the filter's correction priced in the reward, so the actor learns not to lean on the filter
 RUNG_PENALTY = $(RUNG_SHAPED) safety_filter.penalty=1.0
+# the same price on the wish: the transition stores the proposed action with the outcome of its
+# corrected flight, so the critic sees the unsafe wishes and what their correction cost
+RUNG_PROPOSED = $(RUNG_PENALTY) safety_filter.learn_from=proposed
 RUNG_TEACH = +exp=sac_heuristic_planner env.obs_frame=ego safety_filter.mode=train_and_deploy \
 	env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic algo.clone_weight=0.4 \
 	algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
+# the correction bounded rather than priced: the Lagrangian's cost is the filter's correction (the
+# filter leaves no BZ, NFZ or RZ event to count), limited to a discounted 2 (about 0.02 v_max a slot)
 RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.reward.progress_weight=8.0 \
-	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0
+	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0 safety_filter.learn_from=proposed \
+	safety_filter.cost=1.0 algo.cost_limit=2.0
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
-.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-teach \
-	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+.PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
+	pilot-screen-teach pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report
-pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-teach pilot-screen-lag \
-	pilot-screen-learner
+pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
+	pilot-screen-teach pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -509,6 +515,8 @@ pilot-screen-shaped: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_SHAPED) experiment.method=sac_ego_filter_shaped
 pilot-screen-penalty: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_PENALTY) experiment.method=sac_ego_filter_shaped_penalty
+pilot-screen-proposed: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_PROPOSED) experiment.method=sac_ego_filter_shaped_proposed
 pilot-screen-teach: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_TEACH) experiment.method=sac_ego_filter_shaped_teach
 pilot-screen-lag: $(STAMP)

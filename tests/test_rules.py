@@ -68,3 +68,24 @@ def test_a_rule_between_two_keys_does_not_quote_their_section():
         make_env_config(motion={"v_limit": 20.0})
     assert str(err.value) == ("invalid environment config:\n"
                               "  env.motion: motion.v_limit=20.0 must be < motion.v_max=10.0")
+
+
+def test_the_filters_training_options_need_the_filter_in_training_and_the_cost_a_learner_that_reads_it():
+    cfg = _cfg("+exp=sac", "safety_filter.mode=deploy", "safety_filter.penalty=1.0", "safety_filter.learn_from=proposed")
+    (line,) = run_problems(cfg, make_env_config(cfg.env))
+    assert line.startswith("safety_filter.penalty=1.0 safety_filter.learn_from=proposed with safety_filter.mode=deploy: "
+                           "nothing is filtered in training")
+    cfg = _cfg("+exp=sac", "safety_filter.mode=train_and_deploy", "safety_filter.cost=1.0")
+    (line,) = run_problems(cfg, make_env_config(cfg.env))
+    assert line.startswith("safety_filter.cost=1 with algo=sac: that learner reads no cost")
+    cfg = _cfg("+exp=sac_lag", "safety_filter.mode=train_and_deploy", "safety_filter.cost=1.0",
+               "safety_filter.learn_from=proposed")
+    assert run_problems(cfg, make_env_config(cfg.env)) == []
+
+
+def test_an_on_policy_learner_through_the_filter_stores_its_wish():
+    cfg = _cfg("+exp=ppo", "safety_filter.mode=train_and_deploy")
+    (line,) = run_problems(cfg, make_env_config(cfg.env))
+    assert line.startswith("safety_filter.mode=train_and_deploy with algo=ppo and safety_filter.learn_from=executed: ")
+    cfg = _cfg("+exp=ppo", "safety_filter.mode=train_and_deploy", "safety_filter.learn_from=proposed")
+    assert run_problems(cfg, make_env_config(cfg.env)) == []

@@ -201,3 +201,42 @@ def test_collector_stores_the_filtered_action_and_prices_the_change():
         rewards[penalty] = tr["next", "reward"].item()
         assert col.safety_totals.snapshot()["intervention_rate"] == 1.0
     assert rewards[0.0] - rewards[2.0] == pytest.approx(1.5, abs=1e-5)
+
+
+def test_collector_can_store_the_wish_and_count_the_change_as_cost():
+    """The same step as above (10 m/s east, the filter flies 2.5 m/s, |dv| = 7.5 m/s). With
+    learn_from=proposed the transition stores the wish (1, 0) with the reward of the corrected
+    flight; with cost 2 its ("next", "cost") gains 2 * 7.5 / 10 = 1.5 over the env's 0 (no event),
+    while the episode tracker, which reports docs/model.md §7's cost, still counts 0."""
+    from tensordict.nn import TensorDictModuleBase
+
+    from uavlae.collect import UAVCollector
+    from uavlae.envs.scenario import Scenario
+    from uavlae.policies.override import OverridePolicy
+
+    class East(TensorDictModuleBase):
+        in_keys, out_keys = ["observation"], ["action"]
+
+        def forward(self, td):
+            td.set("action", torch.tensor([[1.0, 0.0]]).expand(td.batch_size[0], 2).clone())
+            return td
+
+    sc = Scenario(bz=[(105.0, 80.0, 150.0, 120.0)], ge_pos=[(300.0, 300.0)], ge_data=[1.0], start=(100.0, 100.0))
+    cfg = make_env_config({"ou": {"count": {"min": 0, "max": 0}}})
+    out = {}
+    for learn_from, cost in (("executed", 0.0), ("proposed", 2.0)):
+        env = UAVEnv(cfg, batch_size=[1], seed=0, scenarios=[sc])
+        safety = SafetyFilter(cfg, {**FOUR, "learn_from": learn_from, "cost": cost})
+        col = UAVCollector(env, OverridePolicy(East(), None, mode="never", fallback="policy", seed=0),
+                           frames_per_batch=1, safety=safety)
+        out[learn_from] = tr = col.step()
+        assert tr["safety", "delta"].item() == pytest.approx(7.5)
+        assert not tr["next", "events", "bz_collision"].any()
+        assert col.tracker.state_dict()["acc"]["cost"].tolist() == [0.0]
+    assert out["executed"]["action"].tolist() == [[0.25, 0.0]]
+    assert out["proposed"]["action"].tolist() == [[1.0, 0.0]]
+    # the executed flight is the same: same next state, same reward
+    assert torch.equal(out["proposed"]["next", "observation"], out["executed"]["next", "observation"])
+    assert out["proposed"]["next", "reward"].item() == out["executed"]["next", "reward"].item()
+    assert out["executed"]["next", "cost"].item() == 0.0
+    assert out["proposed"]["next", "cost"].item() == pytest.approx(1.5)

@@ -115,7 +115,9 @@ class UAVCollector:
             through (the actor's, an advisor's, the warm-up's); the transition records
             ``("safety", "changed")`` and ``("safety", "delta")`` (|Δv|, m/s), and with
             ``penalty > 0`` the reward loses ``penalty * delta / v_max``
-            (``("next", "safety_penalty")``).
+            (``("next", "safety_penalty")``); ``learn_from="proposed"`` stores the wish instead
+            of the executed action, and ``cost > 0`` adds ``cost * delta / v_max`` to
+            ``("next", "cost")`` after the episode tracker has counted the env's cost.
     """
 
     def __init__(
@@ -189,7 +191,10 @@ class UAVCollector:
                 td.set("override_abort", torch.zeros(self.B, dtype=torch.bool, device=td.device))
             else:
                 td = self.policy.finish(td, handle.pending)
+        wish = None
         if self.safety is not None:
+            if self.safety.cfg.learn_from == "proposed":
+                wish = td.get("action").clone()
             self._filter(td)
         td = self.env.step(td)
         nxt = td.get("next")
@@ -205,6 +210,15 @@ class UAVCollector:
             nxt.set("truncated", nxt.get("truncated") | abort)
             nxt.set("done", nxt.get("done") | abort)
         self.tracker.update(nxt)
+        # after the tracker: an episode's reported cost stays docs/model.md §7's, while a
+        # constrained learner's cost also counts the filter's correction
+        if self.safety is not None and self.safety.cfg.cost > 0:
+            extra = self.safety.cfg.cost * td.get(("safety", "delta")) / self.env.cfg.motion.v_max
+            nxt.set("cost", nxt.get("cost") + extra.reshape(nxt.get("cost").shape).to(nxt.get("cost").dtype))
+        if wish is not None:
+            # the filter becomes part of the learner's dynamics: the wish is stored with the
+            # outcome of its corrected execution
+            td.set("action", wish)
         out = td if self.keep_keys is None else td.select(*self.keep_keys, strict=False)
         # clone: the partial reset below writes in place (TensorDict.where(out=...)) into the
         # tensors that the next root shares with this transition's "next"

@@ -50,6 +50,12 @@ def world_problems(env: EnvConfig) -> list[str]:
     return out
 
 
+# the learners that constrain ("next", "cost")
+COST_LEARNERS = frozenset({"sac_lag", "cpo"})
+# the learners whose update reads the acting policy's log-probability of the stored action
+ON_POLICY_LEARNERS = frozenset({"ppo", "cpo", "wang", "theile"})
+
+
 def run_problems(cfg: Any, env: EnvConfig) -> list[str]:
     """The broken rules of a composed run config ``cfg`` (validated already) flying the world ``env``."""
     out = world_problems(env)
@@ -57,4 +63,22 @@ def run_problems(cfg: Any, env: EnvConfig) -> list[str]:
     if advisor is not None and advisor.kind != "none" and advisor.mode == "fixed_prob" and float(advisor.fp) == 0:
         out.append(f"advisor.mode=fixed_prob with advisor.fp=0: the {advisor.kind} advisor would never be asked, "
                    "so the run is plain SAC under another name; allowed: 0 < advisor.fp <= 1")
+    sf = cfg.get("safety_filter")
+    if sf is not None:
+        trained = {k: v for k, v in (("penalty", float(sf.penalty)), ("cost", float(sf.cost))) if v > 0}
+        if sf.learn_from != "executed":
+            trained["learn_from"] = sf.learn_from
+        if trained and sf.mode != "train_and_deploy":
+            keys = " ".join(f"safety_filter.{k}={v}" for k, v in trained.items())
+            out.append(f"{keys} with safety_filter.mode={sf.mode}: nothing is filtered in training, so they would "
+                       "change nothing; use safety_filter.mode=train_and_deploy or drop them")
+        algo = cfg.get("algo")
+        if (sf.mode == "train_and_deploy" and sf.learn_from == "executed" and algo is not None
+                and algo.name in ON_POLICY_LEARNERS):
+            out.append(f"safety_filter.mode=train_and_deploy with algo={algo.name} and safety_filter.learn_from=executed: "
+                       "an on-policy learner's stored log-probability is the wish's, so the executed action would "
+                       "give it a wrong ratio; use safety_filter.learn_from=proposed")
+        if float(sf.cost) > 0 and algo is not None and algo.name not in COST_LEARNERS:
+            out.append(f"safety_filter.cost={float(sf.cost):g} with algo={algo.name}: that learner reads no cost, so "
+                       f"the filter's cost would change nothing; allowed with algo in {sorted(COST_LEARNERS)}")
     return out

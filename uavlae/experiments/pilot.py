@@ -66,6 +66,7 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     run = {**key, "frames": frames, "wall_s": final.get("wall_s"), "updates": final.get("updates"),
            "algo": cfg["algo"]["name"], "hidden": cfg["algo"].get("hidden"), "obs_frame": env.get("obs_frame", "world"),
            "filter": sf.get("mode", "off"), "filter_penalty": sf.get("penalty", 0.0),
+           "filter_learn_from": sf.get("learn_from", "executed"), "filter_cost": sf.get("cost", 0.0),
            "progress_weight": env["reward"].get("progress_weight"), "advisor": cfg["advisor"]["kind"],
            "train_intervention": final.get("safety/train/intervention_rate"),
            "eval_intervention": final.get("eval/safety/intervention_rate"),
@@ -203,7 +204,7 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
-          "sac_ego_filter_shaped_teach",
+          "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_teach",
           "saclag_ego_filter_shaped", "saclagln_ego_filter_shaped", "pilot")
 
 

@@ -77,6 +77,13 @@ class SafetyFilterConfig(StrictModel):
     # training only: reward minus penalty * |v_executed - v_wish| / v_max, so the actor learns not
     # to lean on the filter (0: the reward is the env's)
     penalty: float = Field(0.0, ge=0)
+    # training only: the action a transition stores. executed: the filtered one (the critic never
+    # sees an unsafe action, so a penalty lands on the corrected action); proposed: the wish, the
+    # filter being part of the dynamics, so the critic prices the wish with its correction
+    learn_from: Literal["executed", "proposed"] = "executed"
+    # training only: the cost of a learner that constrains one (sac_lag, ppo_lagrangian, cpo) gains
+    # cost * |v_executed - v_wish| / v_max, so its limit bounds how much the filter corrects
+    cost: float = Field(0.0, ge=0)
 
 
 def make_safety_filter_config(cfg: Any = None, **overrides: Any) -> SafetyFilterConfig:
