@@ -240,3 +240,15 @@ def test_collector_can_store_the_wish_and_count_the_change_as_cost():
     assert out["proposed"]["next", "reward"].item() == out["executed"]["next", "reward"].item()
     assert out["executed"]["next", "cost"].item() == 0.0
     assert out["proposed"]["next", "cost"].item() == pytest.approx(1.5)
+
+
+def test_an_advised_run_flies_its_with_advisor_evaluation_through_its_filter(tmp_path):
+    """The with-advisor evaluation of a filtered run is the pilot's flight with the advisor
+    acting too: the filter's counts come back beside the override's, and the filter leaves no
+    RZ speeding (hovering is always admissible), as it does for the actor alone."""
+    from tests.test_train import _run
+
+    final = _run("sac_heuristic_planner", tmp_path / "r", "safety_filter.mode=train_and_deploy",
+                 "trainer.eval_with_advisor=true", "trainer.eval_max_steps=60")
+    assert final["advised/safety/rows"] > 0 and 0 <= final["advised/safety/intervention_rate"] <= 1
+    assert final["advised/override/triggered"] >= 0 and final["advised/RVR"] == 0.0

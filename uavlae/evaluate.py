@@ -230,14 +230,17 @@ class Evaluation:
 
     def fly(self, policy: Any, out_dir: str | os.PathLike[str] | None, title: str = "") -> Flight:
         """``policy`` flies the set; the records, aggregates and pictures go to ``out_dir``."""
-        override = isinstance(policy, OverridePolicy)  # its counters come back with the metrics
+        filtered = isinstance(policy, FilteredPolicy)
+        inner = policy.policy if filtered else policy  # an advised actor may fly through the filter
+        override = isinstance(inner, OverridePolicy)  # its counters come back with the metrics
         if not self.chunked:
-            if isinstance(policy, FilteredPolicy):
+            if filtered:
                 policy.reset()  # this flight's interventions only
-            agg = self.evaluator.run(policy, out_dir, title=title, on_step=self.watch(title, policy))
-            if isinstance(policy, FilteredPolicy):  # the pilot's filter: how often and how much it acted
-                return Flight(agg, {f"safety/{k}": v for k, v in policy.stats.snapshot().items()})
-            return Flight(agg, policy.counters() if override else {})
+            agg = self.evaluator.run(policy, out_dir, title=title, on_step=self.watch(title, inner))
+            stats = dict(inner.counters()) if override else {}
+            if filtered:  # the pilot's filter: how often and how much it acted
+                stats.update({f"safety/{k}": v for k, v in policy.stats.snapshot().items()})
+            return Flight(agg, stats)
         ev = self._chunked(policy, out_dir)
         res = ev.run()
         ev.write(res, title=title)

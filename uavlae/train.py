@@ -479,14 +479,18 @@ def _advised_evaluation(t: Training) -> dict[str, float]:
     """The actor *with* its advisor on the same evaluation set as the actor alone: the
     override at its full trigger (no phase-out), the actor deterministic, at most
     ``trainer.eval_advisor_max_calls`` rows asked. Beside ``eval/``, this tells what the actor
-    owes to its advisor. Training state is untouched (``OverridePolicy.advised``)."""
+    owes to its advisor. A filtered run flies it through its filter, as its pilot, so the two
+    compare. Training state is untouched (``OverridePolicy.advised``)."""
+    flyer = t.policy if t.safety is None else FilteredPolicy(t.policy, t.safety)
     with t.policy.advised(max_calls=t.tr.eval_advisor_max_calls):
-        flight = t.evaluation.fly(t.policy, t.run_dir / "eval" / "with_advisor", title=f"{t.cfg.name} with its advisor")
+        flight = t.evaluation.fly(flyer, t.run_dir / "eval" / "with_advisor", title=f"{t.cfg.name} with its advisor")
     # who answered there: the LLM through its student answers this evaluation too (from the cache
     # where it asked the same before), so its share here is the evaluation's own cost
     keep = ("trigger_rate", "advised_fraction", "advice_fail_rate", "actor_gap", "actor_agree", "triggered",
             "advised", "budget_skipped", "frames", "source/llm", "source/student", "source/fallback")
-    return {**prefixed("advised", flight.metrics), **prefixed("advised/override", {k: flight.stats[k] for k in keep})}
+    safety = {k.removeprefix("safety/"): v for k, v in flight.stats.items() if k.startswith("safety/")}
+    return {**prefixed("advised", flight.metrics), **prefixed("advised/override", {k: flight.stats[k] for k in keep}),
+            **prefixed("advised/safety", safety)}
 
 
 def _advised_eval_counts(tr: Any, final: dict[str, Any], before: dict[str, Any],
