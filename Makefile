@@ -502,8 +502,8 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy en
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-teach pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
-	pilot-report
-pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report
+	pilot-report pilot-card
+pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-teach pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
@@ -547,6 +547,9 @@ pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
 pilot-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
+# the committed pilot's model card (results/pilot/README.md) from the records and +exp=pilot's file
+pilot-card: $(STAMP)
+	$(BIN)/python -m uavlae.experiments.pilot card results/pilot
 # the held-out evaluation set of the verdict: 256 scenarios of SPEC's distribution from a seed used
 # nowhere else (90210); committed, so this only rewrites the same file
 .PHONY: pilot-heldout-set

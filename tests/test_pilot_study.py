@@ -65,3 +65,41 @@ def test_report_from_records_alone(tmp_path):
     assert "| heuristic | 1.000 [1.000, 1.000] |" in text and "| random | 0.000 [0.000, 0.000] |" in text
     with pytest.raises(KeyError):
         rows[("ego", "100 101", "held-out")]
+
+
+def test_model_card_from_records_alone(tmp_path):
+    """The verdict's rung `pilot`, seeds 0 and 1, two held-out scenarios of data 1 each. Seed 0's
+    pilot collects and lands in both: DCR = SLR = 1. Seed 1's collects and lands in scenario 0
+    only: DCR = SLR = 0.5. Pooled: 3/4 = 0.75. The bootstrap draws seeds and scenarios: both
+    draws of seed 1 and of scenario 1 (1/4 x 1/4 = 6.25% > 2.5%) give 0, either draw doubled on
+    the 0 side (7/16) gives 1, so the interval is [0, 1]; seed 0 alone is 1 [1, 1]. Energy 2 of
+    10 everywhere: ECR 0.2. Runs of 50 and 70 min."""
+    from uavlae.errors import InputError
+    from uavlae.experiments.pilot import card
+
+    eps, runs = [], []
+    for seed, got in ((0, (1, 1)), (1, (1, 0))):
+        runs.append({"stage": "verdict", "rung": "pilot", "seed": seed, "frames": 2500000,
+                     "wall_s": 3000.0 + 1200.0 * seed, "commit": "abc123"})
+        for ev in ("pilot", "alone"):
+            for n in (0, 1):
+                eps.append({"stage": "verdict", "rung": "pilot", "seed": seed, "evaluation": ev, "set": "heldout",
+                            "scenario": n, "data_collected": got[n], "data_total": 1, "collided": False,
+                            "landed": bool(got[n]), "rz_speeding": False, "energy_used": 2.0,
+                            "energy_total": 10.0, "boundary_exit": False, "length": 10})
+    recipe = tmp_path / "pilot.yaml"
+    recipe.write_text("# @package _global_\nsafety_filter:\n  mode: train_and_deploy\n")
+    with pytest.raises(InputError, match="no finished run of stage 'verdict'"):
+        _write(tmp_path / "runs.csv", [{**runs[0], "stage": "screen"}], list(runs[0]))
+        _write(tmp_path / "episodes.csv", [], [*EPISODE_KEYS, *EPISODE_COLUMNS])
+        card(tmp_path, recipe)
+    _write(tmp_path / "runs.csv", runs, list(runs[0]))
+    _write(tmp_path / "episodes.csv", eps, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    text = card(tmp_path, recipe).read_text()
+    assert "  mode: train_and_deploy" in text and "from commit abc123" in text and "50-70 min" in text
+    assert "2,500,000 frames on seeds 0 1" in text
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in text.splitlines() if line.startswith("| pilot")}
+    assert "| 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.200" in \
+        rows[("pilot, actor + filter", "0 1")]
+    assert "| 1.000 [1.000, 1.000] | 0.000 [0.000, 0.000] | 1.000 [1.000, 1.000] |" in rows[("pilot, actor + filter", "0")]
+    assert ("pilot, actor alone", "0") in rows and "no RZ speeding" in text
