@@ -491,9 +491,13 @@ RUNG_PENALTY = $(RUNG_SHAPED) safety_filter.penalty=1.0
 # the same price on the wish: the transition stores the proposed action with the outcome of its
 # corrected flight, so the critic sees the unsafe wishes and what their correction cost
 RUNG_PROPOSED = $(RUNG_PENALTY) safety_filter.learn_from=proposed
+# the wish stored without a price: the critic learns what a wish into a wall or over an RZ really
+# brings once corrected, with nothing taught about the size of the correction
+RUNG_WISH = $(RUNG_SHAPED) safety_filter.learn_from=proposed
 RUNG_TEACH = +exp=sac_heuristic_planner env.obs_frame=ego safety_filter.mode=train_and_deploy \
 	env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic algo.clone_weight=0.4 \
 	algo.clone_decay_frames=1000000 advisor.phase_out_frames=500000
+RUNG_WISH_TEACH = $(RUNG_TEACH) safety_filter.learn_from=proposed
 # the correction bounded rather than priced: the Lagrangian's cost is the filter's correction (the
 # filter leaves no BZ, NFZ or RZ event to count), limited to a discounted 2 (about 0.02 v_max a slot)
 RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy env.reward.progress_weight=8.0 \
@@ -501,11 +505,11 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=train_and_deploy en
 	safety_filter.cost=1.0 algo.cost_limit=2.0
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
-	pilot-screen-teach pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
-	pilot-screen-teach pilot-screen-lag pilot-screen-learner
+	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -517,8 +521,12 @@ pilot-screen-penalty: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_PENALTY) experiment.method=sac_ego_filter_shaped_penalty
 pilot-screen-proposed: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_PROPOSED) experiment.method=sac_ego_filter_shaped_proposed
+pilot-screen-wish: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_WISH) experiment.method=sac_ego_filter_shaped_wish
 pilot-screen-teach: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_TEACH) experiment.method=sac_ego_filter_shaped_teach
+pilot-screen-wish-teach: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_WISH_TEACH) experiment.method=sac_ego_filter_shaped_wish_teach
 pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_filter_shaped
 pilot-screen-learner: $(STAMP)

@@ -208,7 +208,8 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
-          "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_teach",
+          "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
+          "sac_ego_filter_shaped_wish_teach",
           "saclag_ego_filter_shaped", "saclagln_ego_filter_shaped", "pilot")
 
 
@@ -263,7 +264,8 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
 
 # the rung each one changes, where that is not the one above it in LADDER (the ladder branches:
 # teaching and the Lagrangian build on other rungs than the one listed before them)
-PARENT = {"sac_ego_filter_shaped_teach": "sac_ego_filter_shaped",
+PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter_shaped_teach": "sac_ego_filter_shaped",
+          "sac_ego_filter_shaped_wish_teach": "sac_ego_filter_shaped_teach",
           "saclag_ego_filter_shaped": "sac_ego_filter_shaped_proposed"}
 
 
