@@ -209,7 +209,7 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
           "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
-          "sac_ego_filter_shaped_wish_teach",
+          "sac_ego_filter_shaped_wish_teach", "sac_ego_filter_shaped_teach_all",
           "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
 
 
@@ -266,6 +266,7 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
 # teaching and the Lagrangian build on other rungs than the one listed before them)
 PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter_shaped_teach": "sac_ego_filter_shaped",
           "sac_ego_filter_shaped_wish_teach": "sac_ego_filter_shaped_teach",
+          "sac_ego_filter_shaped_teach_all": "sac_ego_filter_shaped_teach",
           "saclag_ego_shaped": "sac_ego_filter_shaped"}
 
 
