@@ -549,14 +549,18 @@ pilot-verdict: $(STAMP)
 	$(PILOT) experiment.point=verdict +exp=pilot seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
 		trainer.replay_capacity=$(PILOT_VERDICT_FRAMES) experiment.method=pilot
 	$(MAKE) pilot-heldout pilot-export
+# the pilot of a verdict run: its best selection-set evaluation when it kept one (trainer.keep_best),
+# else its end; the held-out set judges it
+PILOT_CKPT = c=$$d/checkpoints/best.pt; [ -f $$c ] || c=$$d
 pilot-heldout: $(STAMP)
-	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed$$s; \
-		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(HELDOUT) experiment.reuse=true \
+	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed$$s; $(PILOT_CKPT); \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
 			experiment.eval_dir=$$d/evaluate/heldout_pilot trainer.eval_plots=0 || exit 1; \
-		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(HELDOUT) experiment.reuse=true \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
 			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/heldout_alone trainer.eval_plots=0 || exit 1; done
 pilot-export: $(STAMP)
-	$(BIN)/python -m uavlae.export checkpoint=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed0 out=results/pilot/pilot.pt2
+	d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed0; $(PILOT_CKPT); \
+		$(BIN)/python -m uavlae.export checkpoint=$$c out=results/pilot/pilot.pt2
 	$(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --all | tail -1
 pilot-references: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot

@@ -80,7 +80,8 @@ def test_model_card_from_records_alone(tmp_path):
     eps, runs = [], []
     for seed, got in ((0, (1, 1)), (1, (1, 0))):
         runs.append({"stage": "verdict", "rung": "pilot", "seed": seed, "frames": 2500000,
-                     "wall_s": 3000.0 + 1200.0 * seed, "commit": "abc123"})
+                     "wall_s": 3000.0 + 1200.0 * seed, "commit": "abc123",
+                     "best_frames": 2000000 + 100000 * seed})
         for ev in ("pilot", "alone"):
             for n in (0, 1):
                 eps.append({"stage": "verdict", "rung": "pilot", "seed": seed, "evaluation": ev, "set": "heldout",
@@ -97,7 +98,7 @@ def test_model_card_from_records_alone(tmp_path):
     _write(tmp_path / "episodes.csv", eps, [*EPISODE_KEYS, *EPISODE_COLUMNS])
     text = card(tmp_path, recipe).read_text()
     assert "  mode: train_and_deploy" in text and "from commit abc123" in text and "50-70 min" in text
-    assert "2,500,000 frames on seeds 0 1" in text
+    assert "2,500,000 frames on seeds 0 1" in text and "seed 0: 2,000,000, seed 1: 2,100,000 frames" in text
     rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in text.splitlines() if line.startswith("| pilot")}
     assert "| 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.200" in \
         rows[("pilot, actor + filter", "0 1")]

@@ -463,3 +463,33 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
         res = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", *extra])
         for k in ("DCR", "CR", "SLR", "RVR", "ECR"):
             assert res["metrics"][k] == pytest.approx(final[prefix + k], abs=1e-6), (prefix, k)
+
+
+def test_keep_best_keeps_the_networks_of_the_best_evaluation(tmp_path):
+    """Evaluations at 64 and 128 frames. best.pt holds the networks of the one with the highest
+    DCR + SLR - CR - RVR (the earlier on a tie), and uavlae.evaluate on best.pt flies them to the
+    numbers that evaluation recorded; last.pt stays the run's end."""
+    from uavlae.checkpoint import load_checkpoint
+    from uavlae.train import selection_score
+
+    assert selection_score({"DCR": 0.9, "SLR": 0.75, "CR": 0.0625, "RVR": 0.0}) == pytest.approx(1.5875)
+    assert selection_score({"DCR": 0.9, "SLR": float("nan"), "CR": 0.0, "RVR": 0.0}) == float("-inf")
+    run_dir = tmp_path / "r"
+    final = _run("sac", run_dir, "trainer.keep_best=true", "trainer.baselines=false")
+    scores = {}
+    for f in (64, 128):
+        m = json.loads((run_dir / "eval" / f"frames_{f:09d}" / "metrics.json").read_text())
+        scores[f] = selection_score(m)
+    want = 64 if scores[64] >= scores[128] else 128
+    assert final["best/frames"] == want and final["best/score"] == pytest.approx(scores[want])
+    best, _ = load_checkpoint(run_dir / "checkpoints" / "best.pt")
+    assert best["counters"]["frames"] == want and best.get("replay_buffer") is None
+    last, _ = load_checkpoint(run_dir)
+    assert last["counters"]["frames"] == 128
+    from uavlae.evaluate import evaluate_checkpoint
+
+    got = evaluate_checkpoint(_cfg(f"checkpoint={run_dir / 'checkpoints' / 'best.pt'}", *TINY,
+                                  f"experiment.eval_dir={tmp_path / 'again'}"))
+    recorded = json.loads((run_dir / "eval" / f"frames_{want:09d}" / "metrics.json").read_text())
+    for k in ("DCR", "SLR", "CR", "RVR", "ECR"):
+        assert got[k] == pytest.approx(recorded[k], abs=1e-9)

@@ -25,6 +25,7 @@ import torch
 from uavlae.files import atomic_write
 
 LAST, PREV = "last.pt", "prev.pt"
+BEST = "best.pt"  # trainer.keep_best: the networks of the best evaluation so far (no replay buffer)
 FORMAT_VERSION = 1
 
 
@@ -60,6 +61,14 @@ def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike[str], keep
     d.mkdir(parents=True, exist_ok=True)
     state = {"format_version": FORMAT_VERSION, **state}
     return atomic_write(d / LAST, lambda fh: torch.save(state, fh), previous=d / PREV if keep >= 2 else None)
+
+
+def save_best(state: dict[str, Any], run_dir: str | os.PathLike[str]) -> Path:
+    """Write ``state`` atomically as ``best.pt``, beside ``last.pt``; a checkpoint file that
+    ``uavlae.evaluate`` and ``uavlae.export`` take as they take ``last.pt``, which a run's
+    rotation never touches and a resume never reads."""
+    state = {"format_version": FORMAT_VERSION, **state}
+    return atomic_write(checkpoint_dir(run_dir) / BEST, lambda fh: torch.save(state, fh))
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import time
 import uuid
@@ -45,8 +46,8 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 
 from uavlae.algos import OFF_POLICY
-from uavlae.checkpoint import (LAST, checkpoint_dir, resolve_checkpoint, rng_state, run_dir_of, save_checkpoint,
-                               seed_everything, set_rng_state)
+from uavlae.checkpoint import (LAST, checkpoint_dir, resolve_checkpoint, rng_state, run_dir_of, save_best,
+                               save_checkpoint, seed_everything, set_rng_state)
 from uavlae.collect import TRANSITION_KEYS, UAVCollector, make_replay_buffer
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
@@ -303,12 +304,26 @@ class Training:
         except StopRequested:  # thrown away: the RNGs as they were, so a resume evaluates from the same state
             set_rng_state(before)
             raise
+        if self.tr.keep_best:
+            self.keep_if_best()
         self.logger.log_metrics({**prefixed("eval", self.last_eval), "eval/episodes_trained": self.counters["episodes"],
                                  "eval/train_wall_s": float(self.counters["wall_s"])}, step=self.frames)
         self.logger.log_images(trajectory_images(out), step=self.frames)
         self.counters["last_eval_frames"] = self.frames
         every = self.tr.eval_every_frames or self.tr.total_frames
         self.counters["next_eval"] = (self.frames // every + 1) * every
+
+    def keep_if_best(self) -> None:
+        """``checkpoints/best.pt`` when this evaluation's :func:`selection_score` beats every
+        earlier one (ties keep the earlier); the best so far is in the counters, so a resumed
+        run goes on comparing against it."""
+        score = selection_score(self.last_eval)
+        best = self.counters.get("best_score")
+        if best is not None and not score > best:
+            return
+        self.counters["best_score"], self.counters["best_frames"] = score, self.frames
+        save_best({"learner": self.learner.state_dict(), "counters": dict(self.counters),
+                   "last_eval": dict(self.last_eval), "config": _resolved(self.cfg)}, self.run_dir)
 
     def evaluation_owed(self) -> bool:
         """An evaluation a stop cut short before this run's last checkpoint: due, not made."""
@@ -366,6 +381,17 @@ def train(t: Training, stop: GracefulStop) -> dict[str, Any]:
 def _stopped(t: Training, signum: int) -> RunStopped:
     return RunStopped(f"stopped by signal {signum} at {t.frames:,} frames after a checkpoint; continue "
                       f"with: python -m uavlae.train resume={t.run_dir}", int(signum))
+
+
+def selection_score(metrics: dict[str, float]) -> float:
+    """DCR + SLR - CR - RVR of an evaluation (each in [0, 1]; a missing or NaN one scores -inf):
+    what ``trainer.keep_best`` keeps the best of. **[decision]** the task done and the rules kept
+    weigh alike; ECR is left out, being on no common scale with them."""
+    parts = [metrics.get(k, math.nan) for k in ("DCR", "SLR", "CR", "RVR")]
+    if any(not math.isfinite(float(v)) for v in parts):
+        return -math.inf
+    dcr, slr, cr, rvr = (float(v) for v in parts)
+    return dcr + slr - cr - rvr
 
 
 def _evaluate_or_stop(t: Training, finished: bool) -> None:
@@ -432,6 +458,8 @@ def _finish(t: Training) -> dict[str, Any]:
     totals = t.policy.run_totals() if advised else None
     if t.collector.safety is not None:
         final.update(prefixed("safety/train", t.collector.safety_totals.snapshot()))
+    if tr.keep_best and "best_frames" in c:
+        final.update({"best/frames": c["best_frames"], "best/score": c["best_score"]})
     advised_eval = None
     if advised:
         final.update(prefixed("override", _deterministic_counts(totals)))  # type: ignore[arg-type]

@@ -75,6 +75,7 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
            "train_intervention": final.get("safety/train/intervention_rate"),
            "eval_intervention": final.get("eval/safety/intervention_rate"),
            "eval_mean_change": final.get("eval/safety/mean_change"),
+           "best_frames": final.get("best/frames"),
            "commit": str((meta.get("git") or {}).get("commit") or "")[:10]}
     out = train_eval_dir(d, frames)
     sources = {("alone", "selection"): out / "actor_alone" if _filtered(cfg) else out,
@@ -388,6 +389,11 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
              f"{' / '.join(f'{f:,}' for f in frames)} frames on seeds {' '.join(map(str, seeds))}, "
              f"{min(walls):.0f}-{max(walls):.0f} min of wall clock a run (one job a core, 2-core CPU), "
              f"from commit {', '.join(commits) or 'unrecorded'}.", "",
+             *([("Each seed's pilot is its best evaluation on the selection set (`trainer.keep_best`: "
+                 "DCR + SLR - CR - RVR), taken at " + ", ".join(
+                     f"seed {r['seed']}: {int(float(r['best_frames'])):,}" for r in sorted(runs, key=lambda r: int(r["seed"])))
+                 + " frames; the held-out set judges it, and the selection-set rows below are each run's last "
+                 "evaluation."), ""] if all(r.get("best_frames") not in (None, "") for r in runs) else []),
              "## Metrics", "",
              f"Intervals: {METHOD_NAME.format(n=2000)}. Floors of a deployable pilot: "
              + ", ".join(f"{m} {op} {b}" for m, (op, b) in FLOORS.items())
