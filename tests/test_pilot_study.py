@@ -60,6 +60,8 @@ def test_report_from_records_alone(tmp_path):
     assert "| 1.000 [1.000, 1.000] | 0.000 [0.000, 0.000] | 1.000 [1.000, 1.000] |" in plain_pilot
     assert "0.250 / 0.125" in plain_pilot and "| 20 |" in plain_pilot and "not reached (2 runs)" in plain_pilot
     assert "seed 100: 200,000 frames, 10 min" in rows[("ego", "100 101", "actor + filter")]
+    # both evaluations score DCR + SLR - CR - RVR = 2: the earlier is the best on the way
+    assert "seed 100: 1.000 / 1.000 at 100,000; seed 101: 1.000 / 1.000 at 100,000" in rows[("ego", "100 101", "actor + filter")]
     assert "| ego vs plain | actor alone | 0.500 [0.000, 1.000] |" in text
     assert "| ego vs plain | actor + filter | 0.000 [0.000, 0.000] |" in text
     assert "| heuristic | 1.000 [1.000, 1.000] |" in text and "| random | 0.000 [0.000, 0.000] |" in text

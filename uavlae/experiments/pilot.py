@@ -39,6 +39,7 @@ from uavlae.experiments.reporting import fmt_interval, markdown_table, read_json
 from uavlae.entry import command
 from uavlae.errors import InputError
 from uavlae.files import train_eval_dir
+from uavlae.train import selection_score
 
 KEY_COLUMNS = ["stage", "rung", "seed"]
 EPISODE_KEYS = [*KEY_COLUMNS, "evaluation", "set", "scenario"]
@@ -238,11 +239,26 @@ def _time_to_pilot(curves: list[dict[str, str]], stage: str, rung: str, ecr: flo
     return "; ".join(hits) if hits else f"not reached ({len(by_seed)} runs)"
 
 
+def _best_on_the_way(curves: list[dict[str, str]], stage: str, rung: str) -> str:
+    """Per seed, the evaluation during training with the highest DCR + SLR - CR - RVR of the pilot
+    (what ``trainer.keep_best`` keeps; chosen on this set, so optimistic for it)."""
+    by_seed: dict[str, list[dict[str, str]]] = defaultdict(list)
+    for c in curves:
+        if c["stage"] == stage and c["rung"] == rung and all(c.get(m) not in (None, "") for m in ("DCR", "SLR", "CR", "RVR")):
+            by_seed[c["seed"]].append(c)
+    out = []
+    for seed, rows in sorted(by_seed.items()):
+        best = max(rows, key=lambda c: (selection_score({m: float(c[m]) for m in ("DCR", "SLR", "CR", "RVR")}),
+                                        -int(float(c["frames"]))))
+        out.append(f"seed {seed}: {float(best['DCR']):.3f} / {float(best['SLR']):.3f} at {int(float(best['frames'])):,}")
+    return "; ".join(out)
+
+
 def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dict[str, str]], which: str,
            ecr: float | None) -> list[str]:
-    ttp = "time to a pilot"
+    ttp, best = "time to a pilot", "best evaluation: DCR / SLR at frames"
     columns = ["rung", "seeds", "flown", *METRICS, "filter acts (train / eval)", "wall (min)",
-               *([ttp] if which == "selection" else [])]
+               *([ttp, best] if which == "selection" else [])]
     rows = []
     for rung in _order(runs, stage):
         rr = [r for r in runs if r["stage"] == stage and r["rung"] == rung]
@@ -259,7 +275,8 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
                          "flown": "actor + filter" if pilot else "actor alone",
                          **{m: fmt_interval(*interval(g, m)) for m in METRICS},
                          "filter acts (train / eval)": share if pilot else "", "wall (min)": f"{wall:.0f}",
-                         ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else ""})
+                         ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else "",
+                         best: _best_on_the_way(curves, stage, rung) if pilot and which == "selection" else ""})
     return markdown_table(rows, columns)
 
 
