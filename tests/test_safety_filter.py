@@ -168,11 +168,9 @@ def test_world_state_keys_cover_the_filter():
     assert set(STATE_KEYS) <= set(world.STATE_KEYS)
 
 
-def test_collector_stores_the_filtered_action_and_prices_the_change():
-    """A policy that asks 10 m/s east with a building 5 m east of the start: the filter flies
-    (2.5, 0) instead (the hand-worked case above, with the four-heading ring), the transition
-    stores that action, records |dv| = 7.5 m/s, and with penalty 2 the reward loses
-    2 * 7.5 / 10 = 1.5 against the same step with penalty 0."""
+def _east_collector(cfg, safety_cfg):
+    """A collector over one row that starts at (100, 100) with a building 5 m east, whose policy
+    always asks 10 m/s east, through a filter of ``safety_cfg``."""
     from tensordict.nn import TensorDictModuleBase
 
     from uavlae.collect import UAVCollector
@@ -187,13 +185,20 @@ def test_collector_stores_the_filtered_action_and_prices_the_change():
             return td
 
     sc = Scenario(bz=[(105.0, 80.0, 150.0, 120.0)], ge_pos=[(300.0, 300.0)], ge_data=[1.0], start=(100.0, 100.0))
+    env = UAVEnv(cfg, batch_size=[1], seed=0, scenarios=[sc])
+    return UAVCollector(env, OverridePolicy(East(), None, mode="never", fallback="policy", seed=0),
+                        frames_per_batch=1, safety=SafetyFilter(cfg, safety_cfg))
+
+
+def test_collector_stores_the_filtered_action_and_prices_the_change():
+    """A policy that asks 10 m/s east with a building 5 m east of the start: the filter flies
+    (2.5, 0) instead (the hand-worked case above, with the four-heading ring), the transition
+    stores that action, records |dv| = 7.5 m/s, and with penalty 2 the reward loses
+    2 * 7.5 / 10 = 1.5 against the same step with penalty 0."""
     cfg = make_env_config({"ou": {"count": {"min": 0, "max": 0}}})
     rewards = {}
     for penalty in (0.0, 2.0):
-        env = UAVEnv(cfg, batch_size=[1], seed=0, scenarios=[sc])
-        safety = SafetyFilter(cfg, {**FOUR, "penalty": penalty})
-        col = UAVCollector(env, OverridePolicy(East(), None, mode="never", fallback="policy", seed=0),
-                           frames_per_batch=1, safety=safety)
+        col = _east_collector(cfg, {**FOUR, "penalty": penalty})
         tr = col.step()
         assert tr["action"].tolist() == [[0.25, 0.0]]
         assert tr["safety", "changed"].tolist() == [True] and tr["safety", "delta"].item() == pytest.approx(7.5)
@@ -208,27 +213,10 @@ def test_collector_can_store_the_wish_and_count_the_change_as_cost():
     learn_from=proposed the transition stores the wish (1, 0) with the reward of the corrected
     flight; with cost 2 its ("next", "cost") gains 2 * 7.5 / 10 = 1.5 over the env's 0 (no event),
     while the episode tracker, which reports docs/model.md §7's cost, still counts 0."""
-    from tensordict.nn import TensorDictModuleBase
-
-    from uavlae.collect import UAVCollector
-    from uavlae.envs.scenario import Scenario
-    from uavlae.policies.override import OverridePolicy
-
-    class East(TensorDictModuleBase):
-        in_keys, out_keys = ["observation"], ["action"]
-
-        def forward(self, td):
-            td.set("action", torch.tensor([[1.0, 0.0]]).expand(td.batch_size[0], 2).clone())
-            return td
-
-    sc = Scenario(bz=[(105.0, 80.0, 150.0, 120.0)], ge_pos=[(300.0, 300.0)], ge_data=[1.0], start=(100.0, 100.0))
     cfg = make_env_config({"ou": {"count": {"min": 0, "max": 0}}})
     out = {}
     for learn_from, cost in (("executed", 0.0), ("proposed", 2.0)):
-        env = UAVEnv(cfg, batch_size=[1], seed=0, scenarios=[sc])
-        safety = SafetyFilter(cfg, {**FOUR, "learn_from": learn_from, "cost": cost})
-        col = UAVCollector(env, OverridePolicy(East(), None, mode="never", fallback="policy", seed=0),
-                           frames_per_batch=1, safety=safety)
+        col = _east_collector(cfg, {**FOUR, "learn_from": learn_from, "cost": cost})
         out[learn_from] = tr = col.step()
         assert tr["safety", "delta"].item() == pytest.approx(7.5)
         assert not tr["next", "events", "bz_collision"].any()
