@@ -470,7 +470,7 @@ def test_keep_best_keeps_the_networks_of_the_best_evaluation(tmp_path):
     DCR + SLR - CR - RVR (the earlier on a tie), and uavlae.evaluate on best.pt flies them to the
     numbers that evaluation recorded; last.pt stays the run's end."""
     from uavlae.checkpoint import load_checkpoint
-    from uavlae.train import selection_score
+    from uavlae.selection import selection_score
 
     assert selection_score({"DCR": 0.9, "SLR": 0.75, "CR": 0.0625, "RVR": 0.0}) == pytest.approx(1.5875)
     assert selection_score({"DCR": 0.9, "SLR": float("nan"), "CR": 0.0, "RVR": 0.0}) == float("-inf")

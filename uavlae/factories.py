@@ -102,7 +102,7 @@ class TrainerConfig(StrictModel):
     checkpoint_every_frames: int = Field(ge=0)
     keep_checkpoints: int = Field(ge=1, le=2)
     # also keep checkpoints/best.pt: the networks of the evaluation with the highest
-    # selection_score (uavlae.train) of the deployed policy on the evaluation set
+    # selection_score (uavlae.selection) of the deployed policy on the evaluation set
     keep_best: bool = False
     progress_bar: bool
     progress_every_s: float = Field(default=60.0, ge=0)  # a progress line this often where no bar shows (0: none)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sys
 import time
 import uuid
@@ -83,6 +82,7 @@ from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import progress_for
 from uavlae.rules import run_problems
 from uavlae.runlog import make_logger, redact_secrets, route_library_output, run_metadata, trim_csv_scalars
+from uavlae.selection import selection_score
 from uavlae.summary import advised_row, baseline_rows, format_summary, full_run_frames, pictures, write_summary
 
 log = logging.getLogger(__name__)
@@ -381,17 +381,6 @@ def train(t: Training, stop: GracefulStop) -> dict[str, Any]:
 def _stopped(t: Training, signum: int) -> RunStopped:
     return RunStopped(f"stopped by signal {signum} at {t.frames:,} frames after a checkpoint; continue "
                       f"with: python -m uavlae.train resume={t.run_dir}", int(signum))
-
-
-def selection_score(metrics: dict[str, float]) -> float:
-    """DCR + SLR - CR - RVR of an evaluation (each in [0, 1]; a missing or NaN one scores -inf):
-    what ``trainer.keep_best`` keeps the best of. **[decision]** the task done and the rules kept
-    weigh alike; ECR is left out, being on no common scale with them."""
-    parts = [metrics.get(k, math.nan) for k in ("DCR", "SLR", "CR", "RVR")]
-    if any(not math.isfinite(float(v)) for v in parts):
-        return -math.inf
-    dcr, slr, cr, rvr = (float(v) for v in parts)
-    return dcr + slr - cr - rvr
 
 
 def _evaluate_or_stop(t: Training, finished: bool) -> None:

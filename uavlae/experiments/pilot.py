@@ -39,7 +39,7 @@ from uavlae.experiments.reporting import fmt_interval, markdown_table, read_json
 from uavlae.entry import command
 from uavlae.errors import InputError
 from uavlae.files import train_eval_dir
-from uavlae.train import selection_score
+from uavlae.selection import selection_score
 
 KEY_COLUMNS = ["stage", "rung", "seed"]
 EPISODE_KEYS = [*KEY_COLUMNS, "evaluation", "set", "scenario"]
