@@ -377,6 +377,45 @@ def _pooled_row(episodes: list[dict[str, str]], seeds: list[int] | None = None) 
     return {m: fmt_interval(*interval(g, m)) for m in METRICS}
 
 
+VERDICT_SEEDS = 5  # the gate is judged on the mean over this many verdict seeds
+
+
+def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "heldout") -> list[str]:
+    """The gate on ``which`` set: each floor against the pilot's pooled metric (the mean over
+    seeds and scenarios), ECR against the greedy heuristic's on the same scenarios, and whether
+    the actor alone learned (its DCR and SLR intervals above uniform random's); then one line
+    naming what is missed. Fewer seeds than the verdict's five make it provisional."""
+    pilot, alone = (cells.get((stage, rung, ev, which)) for ev in ("pilot", "alone"))
+    greedy, rand = (cells.get(("references", ref, "alone", which)) for ref in ("greedy", "random"))
+    if not pilot:
+        return []
+    g = grid_from_rows(pilot)
+    rows, missed = [], []
+    for m, (op, bound) in FLOORS.items():
+        v = interval(g, m)[0]
+        ok = math.isfinite(v) and (v >= bound if op == ">=" else v <= bound)
+        rows.append({"floor": f"pilot {m} {op} {bound}", "measured": f"{v:.3f}", "met": "yes" if ok else "no"})
+        missed += [] if ok else [f"{m} {v:.3f}"]
+    if greedy:
+        v, ceiling = interval(g, "ECR")[0], interval(grid_from_rows(greedy), "ECR")[0]
+        ok = v <= ceiling
+        rows.append({"floor": f"pilot ECR <= greedy's {ceiling:.3f}", "measured": f"{v:.3f}", "met": "yes" if ok else "no"})
+        missed += [] if ok else [f"ECR {v:.3f} against greedy's {ceiling:.3f}"]
+    if alone and rand:
+        ga, gr = grid_from_rows(alone), grid_from_rows(rand)
+        for m in ("DCR", "SLR"):
+            (v, lo, _), (_, _, rhi) = interval(ga, m), interval(gr, m)
+            ok = lo > rhi
+            rows.append({"floor": f"actor alone {m} interval above random's (upper {rhi:.3f})",
+                         "measured": f"lower {lo:.3f}", "met": "yes" if ok else "no"})
+            missed += [] if ok else [f"the actor alone's {m} (lower {lo:.3f}, random's upper {rhi:.3f})"]
+    head = (f"Judged on {len(seeds)} of the {VERDICT_SEEDS} verdict seeds: provisional until all have run. "
+            if len(seeds) < VERDICT_SEEDS else "")
+    verdict = ("**Gate met.**" if not missed else "**Gate not met**: " + "; ".join(missed) + ".")
+    return [f"## The gate ({which} set)", "", head + verdict, "",
+            *markdown_table(rows, ["floor", "measured", "met"]), ""]
+
+
 def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot",
          pilot_file: str = "results/pilot/pilot.pt2", committed_seed: int = 0) -> Path:
     """``README.md`` in ``records``: the committed pilot's model card, from the CSV records and
@@ -431,6 +470,7 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
                 rows.append({"policy": ref, "seeds": "–", **_pooled_row(eps)})
         if rows:
             lines += [f"On {title}:", "", *markdown_table(rows, ["policy", "seeds", *METRICS]), ""]
+    lines += _gate(cells, stage, rung, seeds)
     lines += ["## Safety", "", GUARANTEE, ""]
     target = records / "README.md"
     write_text(target, "\n".join(lines) + "\n")
