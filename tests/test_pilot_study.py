@@ -75,8 +75,8 @@ def test_model_card_from_records_alone(tmp_path):
     only: DCR = SLR = 0.5. Pooled: 3/4 = 0.75. The bootstrap draws seeds and scenarios: both
     draws of seed 1 and of scenario 1 (1/4 x 1/4 = 6.25% > 2.5%) give 0, either draw doubled on
     the 0 side (7/16) gives 1, so the interval is [0, 1]; seed 0 alone is 1 [1, 1]. Energy 2 of
-    10 everywhere: ECR 0.2. Runs of 50 and 70 min.
-    The gate: the greedy heuristic (held-out, energy 1 of 10: ECR 0.1) collects and lands
+    10 kJ everywhere: ECR 0.2. Runs of 50 and 70 min.
+    The gate: the greedy heuristic (held-out, 1 of 10 kJ: ECR 0.1) collects and lands
     everywhere, uniform random nowhere (DCR 0 [0, 0]). Pooled DCR and SLR 0.75 miss their floors
     (0.95, 0.90), CR and RVR 0 meet theirs, ECR 0.2 misses greedy's 0.1, and the actor alone (as
     the pilot) has a DCR interval from 0, not above random's upper 0; two seeds of five make it
@@ -93,14 +93,14 @@ def test_model_card_from_records_alone(tmp_path):
             for n in (0, 1):
                 eps.append({"stage": "verdict", "rung": "pilot", "seed": seed, "evaluation": ev, "set": "heldout",
                             "scenario": n, "data_collected": got[n], "data_total": 1, "collided": False,
-                            "landed": bool(got[n]), "rz_speeding": False, "energy_used": 2.0,
-                            "energy_total": 10.0, "boundary_exit": False, "length": 10})
-    for ref, got, energy in (("greedy", 1, 1.0), ("random", 0, 3.0)):
+                            "landed": bool(got[n]), "rz_speeding": False, "energy_used": 2000.0,
+                            "energy_total": 10000.0, "boundary_exit": False, "length": 10})
+    for ref, got, energy in (("greedy", 1, 1000.0), ("random", 0, 3000.0)):
         for n in (0, 1):
             eps.append({"stage": "references", "rung": ref, "seed": 0, "evaluation": "alone", "set": "heldout",
                         "scenario": n, "data_collected": got, "data_total": 1, "collided": False,
                         "landed": bool(got), "rz_speeding": False, "energy_used": energy,
-                        "energy_total": 10.0, "boundary_exit": False, "length": 10})
+                        "energy_total": 10000.0, "boundary_exit": False, "length": 10})
     recipe = tmp_path / "pilot.yaml"
     recipe.write_text("# @package _global_\nsafety_filter:\n  mode: train_and_deploy\n")
     with pytest.raises(InputError, match="no finished run of stage 'verdict'"):
@@ -122,3 +122,7 @@ def test_model_card_from_records_alone(tmp_path):
             "0.000); the actor alone's SLR (lower 0.000, random's upper 0.000).") in text
     assert "| pilot CR <= 0.02 | 0.000 | yes |" in text and "| pilot DCR >= 0.95 | 0.750 | no |" in text
     assert "| pilot ECR <= greedy's 0.100 | 0.200 | no |" in text
+    # 2 kJ of 10 in each of 4 pilot episodes: ECR 0.2, 0.05 of it in the one of four that did not
+    # land; 2 kJ a landed mission, greedy's 1 kJ
+    assert ("Where the pilot's ECR (0.200) goes: 0.050 of it in the 25.0% of episodes that did not land; "
+            "a landed mission used 2.0 kJ on average, the greedy heuristic's 1.0 kJ.") in text

@@ -409,11 +409,33 @@ def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "he
             rows.append({"floor": f"actor alone {m} interval above random's (upper {rhi:.3f})",
                          "measured": f"lower {lo:.3f}", "met": "yes" if ok else "no"})
             missed += [] if ok else [f"the actor alone's {m} (lower {lo:.3f}, random's upper {rhi:.3f})"]
+    split = _energy_split(pilot, greedy)
     head = (f"Judged on {len(seeds)} of the {VERDICT_SEEDS} verdict seeds: provisional until all have run. "
             if len(seeds) < VERDICT_SEEDS else "")
     verdict = ("**Gate met.**" if not missed else "**Gate not met**: " + "; ".join(missed) + ".")
     return [f"## The gate ({which} set)", "", head + verdict, "",
-            *markdown_table(rows, ["floor", "measured", "met"]), ""]
+            *markdown_table(rows, ["floor", "measured", "met"]), "", *([split, ""] if split else [])]
+
+
+def _energy_split(pilot: list[dict[str, str]], greedy: list[dict[str, str]] | None) -> str:
+    """Where the pilot's ECR goes: the share spent in episodes that did not land (they fly on to
+    T_max or end early), and the mean energy of a landed mission against the greedy heuristic's."""
+    def landed(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [r for r in rows if str(r["landed"]).lower() in ("true", "1", "1.0")]
+
+    total = sum(float(r["energy_total"]) for r in pilot)
+    used = sum(float(r["energy_used"]) for r in pilot)
+    ok = landed(pilot)
+    if not total or not ok:
+        return ""
+    lost = used - sum(float(r["energy_used"]) for r in ok)
+    text = (f"Where the pilot's ECR ({used / total:.3f}) goes: {lost / total:.3f} of it in the "
+            f"{1 - len(ok) / len(pilot):.1%} of episodes that did not land; a landed mission used "
+            f"{sum(float(r['energy_used']) for r in ok) / len(ok) / 1000:.1f} kJ on average")
+    g_ok = landed(greedy or [])
+    if g_ok:
+        text += f", the greedy heuristic's {sum(float(r['energy_used']) for r in g_ok) / len(g_ok) / 1000:.1f} kJ"
+    return text + "."
 
 
 def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot",
