@@ -377,6 +377,11 @@ def _pooled_row(episodes: list[dict[str, str]], seeds: list[int] | None = None) 
     return {m: fmt_interval(*interval(g, m)) for m in METRICS}
 
 
+def _span(values: list[float]) -> str:
+    lo, hi = f"{min(values):.0f}", f"{max(values):.0f}"
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
 VERDICT_SEEDS = 5  # the gate is judged on the mean over this many verdict seeds
 
 
@@ -413,7 +418,7 @@ def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "he
     head = (f"Judged on {len(seeds)} of the {VERDICT_SEEDS} verdict seeds: provisional until all have run. "
             if len(seeds) < VERDICT_SEEDS else "")
     verdict = ("**Gate met.**" if not missed else "**Gate not met**: " + "; ".join(missed) + ".")
-    return [f"## The gate ({which} set)", "", head + verdict, "",
+    return [f"## The gate ({'held-out' if which == 'heldout' else which} set)", "", head + verdict, "",
             *markdown_table(rows, ["floor", "measured", "met"]), "", *([split, ""] if split else [])]
 
 
@@ -465,7 +470,7 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
              "## Recipe", "", "```yaml", recipe.read_text().rstrip("\n"), "```", "",
              f"Seed {committed_seed} is the committed pilot, fixed before the runs. Trained at "
              f"{' / '.join(f'{f:,}' for f in frames)} frames on seeds {' '.join(map(str, seeds))}, "
-             f"{min(walls):.0f}-{max(walls):.0f} min of wall clock a run (one job a core, 2-core CPU), "
+             f"{_span(walls)} min of wall clock a run (one job a core, 2-core CPU), "
              f"from commit {', '.join(commits) or 'unrecorded'}.", "",
              *([("Each seed's pilot is its best evaluation on the selection set (`trainer.keep_best`: "
                  "DCR + SLR - CR - RVR), taken at " + ", ".join(
@@ -484,8 +489,9 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
             if not eps:
                 continue
             rows.append({"policy": f"pilot, {flown}", "seeds": " ".join(map(str, seeds)), **_pooled_row(eps)})
-            rows.append({"policy": f"pilot, {flown}", "seeds": str(committed_seed),
-                         **_pooled_row(eps, [committed_seed])})
+            if len(seeds) > 1:
+                rows.append({"policy": f"pilot, {flown}", "seeds": str(committed_seed),
+                             **_pooled_row(eps, [committed_seed])})
         for ref in ("greedy", "planner", "random"):
             eps = cells.get(("references", ref, "alone", which))
             if eps:
