@@ -513,8 +513,8 @@ RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-lag \
 	pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
-	pilot-report pilot-card
-pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-card
+	pilot-report pilot-stalls pilot-card
+pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
@@ -566,6 +566,9 @@ pilot-references: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot
 pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
+# where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
+pilot-stalls: $(STAMP)
+	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
 pilot-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
 # the committed pilot's model card (results/pilot/README.md) from the records and +exp=pilot's file

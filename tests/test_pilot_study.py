@@ -126,3 +126,31 @@ def test_model_card_from_records_alone(tmp_path):
     # land; 2 kJ a landed mission, greedy's 1 kJ
     assert ("Where the pilot's ECR (0.200) goes: 0.050 of it in the 25.0% of episodes that did not land; "
             "a landed mission used 2.0 kJ on average, the greedy heuristic's 1.0 kJ.") in text
+
+
+def test_stall_summary_by_hand():
+    """Three rows, window 2. Row 0 lands after 2 slots, the filter changing its wish by 0.2 m/s
+    each. Row 1 flies 4 slots, ends at (11, 10), 1 m west of the NFZ [12, 0, 20, 20], and does
+    not move over its last 2 slots (net 0 m) while the filter changes its wish by 1 m/s: at an
+    obstacle and held. Row 2 flies 30 m a slot far from every obstacle (net 30 m over its last
+    2 slots), unchanged. So 2 unlanded, 1 at an obstacle and held; the median filter change over
+    the unlanded rows' windows is (1 + 0) / 2 = 0.5; the landed row's mean over its flight 0.2."""
+    import torch
+
+    from uavlae.experiments.pilot import stall_summary
+
+    positions = torch.tensor([
+        [[0.0, 0.0], [10.0, 10.0], [100.0, 100.0]],
+        [[1.0, 0.0], [10.0, 10.0], [130.0, 100.0]],
+        [[9.0, 9.0], [11.0, 10.0], [160.0, 100.0]],
+        [[9.0, 9.0], [11.0, 10.0], [190.0, 100.0]],
+    ])
+    changes = torch.tensor([[0.2, 0.0, 0.0], [0.2, 0.0, 0.0], [5.0, 1.0, 0.0], [5.0, 1.0, 0.0]])
+    nfz = torch.tensor([[12.0, 0.0, 20.0, 20.0]]).expand(3, 1, 4)
+    bz = torch.zeros(3, 1, 4)
+    found = stall_summary(positions, changes, torch.tensor([2, 4, 4]), torch.tensor([True, False, False]),
+                          [(bz, torch.zeros(3, 1, dtype=torch.bool)), (nfz, torch.ones(3, 1, dtype=torch.bool))],
+                          window=2)
+    assert found == {"episodes": 3, "unlanded": 2, "unlanded_at_obstacle": 1, "unlanded_held": 1,
+                     "unlanded_filter_change_median": pytest.approx(0.5), "landed_filter_change_mean": pytest.approx(0.2),
+                     "window": 2}

@@ -1,6 +1,6 @@
 """The pilot study (``make pilot-study``; uavlae/experiments/README.md, "A pilot worth deploying").
 
-Four sub-commands:
+Five sub-commands:
 
 - ``records RUNS_DIR --out results/pilot``: what the report needs of every finished run under
   ``RUNS_DIR/pilot/<stage>/<rung>/seed<k>``, as CSV files that travel with the repository:
@@ -16,6 +16,9 @@ Four sub-commands:
   planner's geodesic direction (what planner knowledge buys) with and without the filter.
 - ``card results/pilot``: the committed pilot's model card (``README.md``) from those files
   and the recipe (``uavlae/conf/exp/pilot.yaml``) alone.
+- ``stalls --actor results/pilot/pilot.pt2``: where an exported pilot's unlanded held-out
+  episodes end (``stalls.json``): beside a building or no-fly zone, held there, and how much
+  the filter changes the actor's wish over their last slots; the card reports it.
 - ``report results/pilot``: ``report.md`` from those files alone: per stage and rung, the pilot
   and the actor alone side by side with stratified-bootstrap intervals over seeds x scenarios
   (:mod:`uavlae.experiments.advice_stats`), the filter's share, the compute, the time to a pilot
@@ -28,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -187,6 +191,92 @@ def write_references(out: Path, sets: dict[str, Path] | None = None) -> dict[str
     old = [r for r in read_rows(out / "episodes.csv") if r["stage"] != "references"]
     write_csv(out / "episodes.csv", old + episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
     return {"episodes": len(episodes)}
+
+
+# ---------------------------------------------------------------------------- where pilots stall
+
+STALL_NEAR_M = 3.0  # an episode "ends at an obstacle" within this distance of a BZ or NFZ
+STALL_STILL_M = 20.0  # ... and "is held" when it moved less than this over its last window
+
+
+def stall_summary(positions: Any, changes: Any, lengths: Any, landed: Any, obstacles: list[tuple[Any, Any]],
+                  window: int = 200) -> dict[str, float]:
+    """Where the episodes that did not land ended. ``positions`` [T, B, 2] and ``changes``
+    [T, B] (the filter's |executed - wished| in m/s) per slot, each row's ``lengths`` [B] and
+    ``landed`` [B]; ``obstacles``: (rectangles [B, K, 4] as x0, y0, x1, y1, mask [B, K]) of the
+    BZs and NFZs. Over each row's last ``window`` slots: its net displacement and the filter's
+    mean change; at its end: its distance to the nearest obstacle."""
+    import torch
+
+    b = positions.shape[1]
+    rows = torch.arange(b)
+    last = (lengths - 1).clamp_min(0)
+    first = (lengths - window).clamp_min(0)
+    end, start = positions[last, rows], positions[first, rows]
+    dist = torch.full((b,), math.inf)
+    for rect, mask in obstacles:
+        dx = torch.maximum(rect[..., 0] - end[:, None, 0], end[:, None, 0] - rect[..., 2]).clamp_min(0)
+        dy = torch.maximum(rect[..., 1] - end[:, None, 1], end[:, None, 1] - rect[..., 3]).clamp_min(0)
+        d = torch.where(mask, torch.hypot(dx, dy), torch.full_like(dx, math.inf))
+        dist = torch.minimum(dist, d.min(-1).values)
+    t = torch.arange(positions.shape[0])[:, None]
+    in_window = (t >= first) & (t < lengths)
+    in_flight = t < lengths
+    change_window = (changes * in_window).sum(0) / in_window.sum(0).clamp_min(1)
+    net = torch.linalg.vector_norm(end - start, dim=-1)
+    out = ~landed
+    n_out = int(out.sum())
+    flown = (changes * in_flight)[:, landed].sum() / in_flight[:, landed].sum().clamp_min(1)
+    return {
+        "episodes": b, "unlanded": n_out,
+        "unlanded_at_obstacle": int((out & (dist < STALL_NEAR_M)).sum()),
+        "unlanded_held": int((out & (dist < STALL_NEAR_M) & (net < STALL_STILL_M)).sum()),
+        "unlanded_filter_change_median": statistics.median(change_window[out].tolist()) if n_out else math.nan,
+        "landed_filter_change_mean": float(flown) if bool(landed.any()) else math.nan,
+        "window": window,
+    }
+
+
+def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, float]:
+    """Fly the exported pilot ``actor`` on every scenario of ``scenario_set`` as ``uavlae.fly
+    --all`` does (the same batch and OU stream), asking its actor alone beside it each slot for
+    the wish the filter corrected, and summarise where the unlanded episodes ended
+    (:func:`stall_summary`)."""
+    import importlib
+
+    import torch
+
+    from uavlae import fly
+
+    module, meta = fly.load_actor(actor)
+    if meta.get("kind", "actor") != "pilot":
+        raise InputError(f"{actor} is an actor without a safety filter: stalls reads a pilot's (uavlae.export of a "
+                         "run with safety_filter.mode other than off)")
+    world = importlib.import_module("uavlae.envs.world")
+    cfg = importlib.import_module("uavlae.envs.config").make_env_config(meta["env"])
+    pilot, alone = fly.policy_of(module, meta, cfg, True), fly.policy_of(module, meta, cfg, False)
+    scenarios = read_json(scenario_set)
+    parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
+    scen = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    g = torch.Generator().manual_seed(int(meta.get("eval_seed", 0)))
+    state = world.initial_state(scen, cfg)
+    b = len(scenarios)
+    ended, landed = torch.zeros(b, dtype=torch.bool), torch.zeros(b, dtype=torch.bool)
+    lengths = torch.zeros(b, dtype=torch.int64)
+    positions, changes = [], []
+    with torch.no_grad():
+        for _ in range(int(meta.get("eval_max_steps") or cfg.t_max)):
+            action = pilot(state)
+            changes.append(torch.linalg.vector_norm(action - alone(state), dim=-1))
+            positions.append(state["position"].clone())
+            state, events, _, _, terminated, truncated = world.world_step(state, action, cfg, g)
+            landed |= events["landed"] & ~ended
+            lengths += (~ended).long()
+            ended |= terminated | truncated
+            if bool(ended.all()):
+                break
+    return stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
+                         [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window)
 
 
 # ---------------------------------------------------------------------------- the report
@@ -443,6 +533,17 @@ def _energy_split(pilot: list[dict[str, str]], greedy: list[dict[str, str]] | No
     return text + "."
 
 
+def _stalls_line(found: dict[str, Any]) -> str:
+    return (f"Where the committed pilot stops short (`python -m uavlae.experiments.pilot stalls`, `{found['actor']}` on "
+            f"`{found['scenario']}`): of its {found['unlanded']} episodes of {found['episodes']} that did not land, "
+            f"{found['unlanded_at_obstacle']} ended within {STALL_NEAR_M:.0f} m of a building or no-fly zone, "
+            f"{found['unlanded_held']} of them held there (under {STALL_STILL_M:.0f} m of net motion in their last "
+            f"{found['window']} slots). There the filter changed the actor's wish by {found['unlanded_filter_change_median']:.2f} "
+            f"m/s (median over those episodes), against {found['landed_filter_change_mean']:.2f} m/s on average in the "
+            "landed flights" + (": the actor keeps asking to fly through the obstacle and the filter keeps it out."
+                                if found["unlanded_filter_change_median"] > 2 * found["landed_filter_change_mean"] else "."))
+
+
 def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot",
          pilot_file: str = "results/pilot/pilot.pt2", committed_seed: int = 0) -> Path:
     """``README.md`` in ``records``: the committed pilot's model card, from the CSV records and
@@ -499,6 +600,8 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
         if rows:
             lines += [f"On {title}:", "", *markdown_table(rows, ["policy", "seeds", *METRICS]), ""]
     lines += _gate(cells, stage, rung, seeds)
+    if (records / "stalls.json").exists():
+        lines += [_stalls_line(read_json(records / "stalls.json")), ""]
     lines += ["## Safety", "", GUARANTEE, ""]
     target = records / "README.md"
     write_text(target, "\n".join(lines) + "\n")
@@ -518,8 +621,16 @@ def main(argv: list[str] | None = None) -> None:
     c = sub.add_parser("card", help="CSV records + the recipe -> the committed pilot's model card (README.md)")
     c.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
     c.add_argument("--recipe", type=Path, default=Path("uavlae/conf/exp/pilot.yaml"))
+    st = sub.add_parser("stalls", help="where an exported pilot's unlanded episodes end (-> OUT/stalls.json)")
+    st.add_argument("--actor", type=Path, default=Path("results/pilot/pilot.pt2"))
+    st.add_argument("--scenario", type=Path, default=SETS["heldout"])
+    st.add_argument("--out", type=Path, default=Path("results/pilot"))
     args = p.parse_args(argv)
-    if args.cmd == "card":
+    if args.cmd == "stalls":
+        found = {"actor": args.actor.as_posix(), "scenario": args.scenario.as_posix(), **stalls(args.actor, args.scenario)}
+        write_text(args.out / "stalls.json", json.dumps(found, indent=1) + "\n")
+        print(json.dumps(found))
+    elif args.cmd == "card":
         print(card(args.records, args.recipe))
     elif args.cmd == "records":
         print(json.dumps(write_records(args.runs, args.out)))
