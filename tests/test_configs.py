@@ -119,3 +119,41 @@ def test_resolved_config_never_holds_the_api_key(hydra_ctx, monkeypatch):
     # a key pasted into any field by mistake is not written to the run's files
     resolved["llm"]["model"] = "model-sk-test-secret-123"
     assert "sk-test-secret-123" not in repr(redact_secrets(resolved))
+
+
+def _makefile_rungs() -> dict[str, list[str]]:
+    """The pilot study's rungs as the Makefile defines them (``RUNG_X = keys``, where the keys may
+    name an earlier rung as ``$(RUNG_Y)``), each expanded to its override list."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "Makefile").read_text().replace("\\\n", " ")
+    raw = {}
+    for line in text.splitlines():
+        name, sep, value = line.partition(" = ")
+        if sep and name.startswith("RUNG_"):
+            raw[name] = value.split()
+
+    def expand(name: str) -> list[str]:
+        return [k for key in raw[name] for k in (expand(key[2:-1]) if key.startswith("$(RUNG_") else [key])]
+
+    return {name: [k.strip("'") for k in expand(name)] for name in raw}
+
+
+def test_every_pilot_rung_composes_and_keeps_the_rules(hydra_ctx):
+    """Every rung of the ladder, composed as `make pilot-screen-*` composes it, validates and breaks
+    no rule of uavlae/rules.py, and every rung of the report's ladder has a Makefile target."""
+    from pathlib import Path
+
+    from uavlae.envs import make_env_config
+    from uavlae.experiments.pilot import LADDER
+    from uavlae.rules import run_problems
+
+    rungs = _makefile_rungs()
+    assert {"RUNG_TEACH_ALL", "RUNG_WISH_TEACH_ALL", "RUNG_LAG"} <= set(rungs)
+    for name, keys in rungs.items():
+        cfg = _compose("+sweep=pilot", "+profile=quick", "env=default", *keys)
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+        assert run_problems(cfg, make_env_config(cfg.env)) == [], name
+    assert rungs["RUNG_WISH_TEACH_ALL"][-1] == "safety_filter.learn_from=proposed"
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    assert all(f"experiment.method={rung}" in makefile for rung in LADDER)
