@@ -646,7 +646,6 @@ def test_an_endpoint_that_is_down_before_the_run_stops_it_before_any_work(tmp_pa
     the run meets the fault, and the command ends with one line naming the URL, exit status 2,
     before a frame is trained and without leaving its run folder (it held nothing of its own)."""
     ep = Endpoint(kind)
-    root = Path(__file__).resolve().parents[1]
     run_dir = tmp_path / "run"
     args = ["+exp=sac_llm", f"run_dir={run_dir}", "trainer.total_frames=64", "trainer.env_batch_size=2",
             "trainer.frames_per_batch=8", "trainer.init_random_frames=0", "logger.wandb.mode=disabled",

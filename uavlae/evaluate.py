@@ -216,11 +216,11 @@ class Evaluation:
     def watch(self, title: str, policy: Any) -> EpisodeProgress:
         """A flight's progress lines and its stop (:class:`uavlae.progress.EpisodeProgress`); an
         override's lines also count the rows it asked of its advisor, against its budget."""
-        extra = None
-        if isinstance(policy, OverridePolicy):
-            def extra() -> str:
-                of = "" if policy.max_calls is None else f" of {policy.max_calls}"
-                return f"advisor asked for {policy.calls_used} rows{of}"
+        def asked() -> str:
+            of = "" if policy.max_calls is None else f" of {policy.max_calls}"
+            return f"advisor asked for {policy.calls_used} rows{of}"
+
+        extra = asked if isinstance(policy, OverridePolicy) else None
         return EpisodeProgress(title or "evaluation", len(self.scenarios), every_s=self.progress_every_s,
                                first_s=self.progress_first_s, stop=self.stop, extra=extra)
 
