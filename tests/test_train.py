@@ -463,6 +463,15 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
         res = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", *extra])
         for k in ("DCR", "CR", "SLR", "RVR", "ECR"):
             assert res["metrics"][k] == pytest.approx(final[prefix + k], abs=1e-6), (prefix, k)
+        if not extra:
+            flown = res
+    # the stalls diagnosis flies the same flights: its unlanded count is the evaluation's, and
+    # the filter changed the wish by at most the largest velocity difference (2 v_max)
+    from uavlae.experiments.pilot import stalls
+    found = stalls(out, run_dir / "eval_set.json")
+    assert found["episodes"] == 3 and found["unlanded"] == 3 - sum(flown["landed"])
+    assert 0 <= found["unlanded_held"] <= found["unlanded_at_obstacle"] <= found["unlanded"]
+    assert 0 <= found["landed_filter_change_mean"] <= 2 * env_cfg.motion.v_max or found["unlanded"] == 3
 
 
 def test_keep_best_keeps_the_networks_of_the_best_evaluation(tmp_path):

@@ -111,10 +111,12 @@ def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool 
 
 
 def fly_batch(policy: Any, env_cfg: Any, scenarios: list[dict[str, Any]], seed: int = 0,
-              max_steps: int | None = None) -> dict[str, Any]:
+              max_steps: int | None = None, on_step: Any = None) -> dict[str, Any]:
     """Every scenario at once, one row each, as the evaluator flies its set: the same batch, the
     same OU random stream (``seed``), each row's first episode scored, rows that ended stepped on
-    until all have (their output ignored). Returns per-episode records and the pooled metrics."""
+    until all have (their output ignored). Returns per-episode records and the pooled metrics.
+    ``on_step(state, action)``, if given, sees each slot's state before the step and its action
+    (for diagnoses that record the flight)."""
     world, _ = _world_modules()
     parts = [scenario_tensors(d, env_cfg) for d in scenarios]
     scen = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
@@ -128,7 +130,10 @@ def fly_batch(policy: Any, env_cfg: Any, scenarios: list[dict[str, Any]], seed: 
     length = torch.zeros(b, dtype=torch.int64)
     with torch.no_grad():
         for _ in range(int(max_steps or env_cfg.t_max)):
-            state, events, _, _, terminated, truncated = world.world_step(state, policy(state), env_cfg, g)
+            action = policy(state)
+            if on_step is not None:
+                on_step(state, action)
+            state, events, _, _, terminated, truncated = world.world_step(state, action, env_cfg, g)
             live = ~ended
             for k in keys:
                 seen[k] |= events[k] & live

@@ -242,41 +242,32 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
     --all`` does (the same batch and OU stream), asking its actor alone beside it each slot for
     the wish the filter corrected, and summarise where the unlanded episodes ended
     (:func:`stall_summary`)."""
-    import importlib
-
     import torch
 
     from uavlae import fly
+    from uavlae.envs import make_env_config
 
     module, meta = fly.load_actor(actor)
     if meta.get("kind", "actor") != "pilot":
         raise InputError(f"{actor} is an actor without a safety filter: stalls reads a pilot's (uavlae.export of a "
                          "run with safety_filter.mode other than off)")
-    world = importlib.import_module("uavlae.envs.world")
-    cfg = importlib.import_module("uavlae.envs.config").make_env_config(meta["env"])
-    pilot, alone = fly.policy_of(module, meta, cfg, True), fly.policy_of(module, meta, cfg, False)
+    cfg = make_env_config(meta["env"])
+    alone = fly.policy_of(module, meta, cfg, False)
     scenarios = read_json(scenario_set)
-    parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
-    scen = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-    g = torch.Generator().manual_seed(int(meta.get("eval_seed", 0)))
-    state = world.initial_state(scen, cfg)
-    b = len(scenarios)
-    ended, landed = torch.zeros(b, dtype=torch.bool), torch.zeros(b, dtype=torch.bool)
-    lengths = torch.zeros(b, dtype=torch.int64)
     positions, changes = [], []
+
+    def record(state: Any, action: Any) -> None:
+        positions.append(state["position"].clone())
+        changes.append(torch.linalg.vector_norm(action - alone(state), dim=-1))
+
     with torch.no_grad():
-        for _ in range(int(meta.get("eval_max_steps") or cfg.t_max)):
-            action = pilot(state)
-            changes.append(torch.linalg.vector_norm(action - alone(state), dim=-1))
-            positions.append(state["position"].clone())
-            state, events, _, _, terminated, truncated = world.world_step(state, action, cfg, g)
-            landed |= events["landed"] & ~ended
-            lengths += (~ended).long()
-            ended |= terminated | truncated
-            if bool(ended.all()):
-                break
-    return stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
-                         [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window)
+        flown = fly.fly_batch(fly.policy_of(module, meta, cfg, True), cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
+                              max_steps=meta.get("eval_max_steps"), on_step=record)
+    parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
+    scen = {k: torch.cat([p[k] for p in parts]) for k in ("bz", "bz_mask", "nfz", "nfz_mask")}
+    return stall_summary(torch.stack(positions), torch.stack(changes), torch.tensor(flown["length"]),
+                         torch.tensor(flown["landed"]), [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])],
+                         window)
 
 
 # ---------------------------------------------------------------------------- the report
