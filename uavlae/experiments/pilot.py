@@ -409,7 +409,7 @@ def build(records: Path) -> Path:
     for which in ("selection", "heldout"):
         rows = [r for r, w in refs if w == which]
         if rows:
-            lines += [f"## References on the {which} set", "",
+            lines += [f"## References on the {'held-out' if which == 'heldout' else which} set", "",
                       "Flown once each (no learning; `python -m uavlae.experiments.pilot references`): the greedy "
                       "heuristic, the global planner, uniform random (and through the filter), and the follower of "
                       "the planner's geodesic direction (`env=shaped_geodesic_soft`'s column; what planner knowledge "
@@ -422,8 +422,10 @@ def build(records: Path) -> Path:
     stages = [s for s in dict.fromkeys(r["stage"] for r in runs) if s != "references"]
     for stage in stages:
         ref = {ev: cells.get((stage, _order(runs, stage)[0], ev, "selection")) for ev in ("heuristic", "random")}
-        greedy = grid_from_rows(ref["heuristic"]) if ref["heuristic"] else None
-        ecr = interval(greedy, "ECR")[0] if greedy else None
+        # the ECR floor is the greedy heuristic's: the references' copy where flown (a run taught by
+        # the planner flies the planner as its own heuristic baseline), else the run's baseline
+        flown = cells.get(("references", "greedy", "alone", "selection")) or ref["heuristic"]
+        ecr = interval(grid_from_rows(flown), "ECR")[0] if flown else None
         for which, title in (("selection", "the selection set (results/eval_set_32.json)"),
                              ("heldout", "the held-out set (results/pilot/heldout_set_256.json)")):
             if not any(k[0] == stage and k[3] == which for k in cells):
@@ -432,10 +434,14 @@ def build(records: Path) -> Path:
             if which == "selection":
                 grids = {ev: grid_from_rows([{**r, "seed": 0} for r in rows if r["seed"] == rows[0]["seed"]])
                          for ev, rows in ref.items() if rows}
-                lines += ["References on the same scenarios (flown in every run; the first rung's copy):", "",
+                lines += ["References on the same scenarios (flown in every run; the first rung's copy; `heuristic` is "
+                          "the run's own baseline: the greedy heuristic, or the planner in a run taught by it, as "
+                          "`+exp=pilot`):", "",
                           *markdown_table([{"policy": ev, **{m: fmt_interval(*interval(g, m)) for m in METRICS}}
                                            for ev, g in grids.items()], ["policy", *METRICS]), ""]
-            lines += [f"### {stage}: what each ingredient moved ({which})", "", *_ladder(stage, runs, cells, which), ""]
+            moved = _ladder(stage, runs, cells, which)
+            if len(moved) > 2:  # more than the header: the stage has a rung to compare with
+                lines += [f"### {stage}: what each ingredient moved ({which})", "", *moved, ""]
     target = records / "report.md"
     write_text(target, "\n".join(lines) + "\n")
     return target
