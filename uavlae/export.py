@@ -30,7 +30,7 @@ from uavlae.envs.scenario import sample_scenarios
 from uavlae.envs.world import ObservationLayout, initial_state, nearest_distances
 from uavlae.errors import ConfigError
 from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
-from uavlae.files import atomic_write
+from uavlae.files import atomic_write, portable
 from uavlae.runlog import package_versions, without_hydra_output
 
 
@@ -77,6 +77,17 @@ def deterministic_actor_module(learner: Any, action_spec: Any) -> DeterministicA
     return DeterministicActor(net, box.space.low.cpu(), box.space.high.cpu()).eval()
 
 
+def _save(program: Any, meta: dict[str, Any], path: str | Path) -> Path:
+    """Write ``program`` with ``meta`` inside. The program is a file that travels (a committed
+    pilot): the source locations torch.export records with each node name this machine's
+    folders, so they are dropped; they play no part in running it."""
+    for module in program.graph_module.modules():
+        if isinstance(module, torch.fx.GraphModule):
+            for node in module.graph.nodes:
+                node.meta.pop("stack_trace", None)
+    return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
+
+
 def export_actor(learner: Any, action_spec: Any, path: str | Path, meta: dict[str, Any]) -> Path:
     """Export the deterministic actor with ``torch.export`` and save it with ``meta`` (env config,
     versions) inside. The batch dimension is dynamic: any ``[N, obs_dim]`` observation works."""
@@ -85,7 +96,7 @@ def export_actor(learner: Any, action_spec: Any, path: str | Path, meta: dict[st
     batch = torch.export.Dim("batch", min=1)
     with torch.no_grad():
         program = torch.export.export(module, (example,), dynamic_shapes={"observation": {0: batch}})
-    return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
+    return _save(program, meta, path)
 
 
 # The raw state a pilot is given (docs/env_contract.md), less the nearest-distance entries it
@@ -128,7 +139,7 @@ def export_pilot(learner: Any, action_spec: Any, env_cfg: Any, safety: Any, path
     dynamic = {"state": {k: {0: batch} for k in example}, "use_filter": None}
     with torch.no_grad():
         program = torch.export.export(module, (example, torch.tensor(True)), dynamic_shapes=dynamic)
-    return atomic_write(path, lambda fh: torch.export.save(program, fh, extra_files={"meta.json": json.dumps(meta)}))
+    return _save(program, meta, path)
 
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any = None) -> Path:
@@ -148,7 +159,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
         "algo": saved.algo.name,
         "name": saved.name,
         "frames": int(state["counters"]["frames"]),
-        "checkpoint": str(file),
+        "checkpoint": portable(str(file), Path.cwd()),
         "obs_dim": int(env.observation_spec["observation"].shape[-1]),
         # the evaluator's OU random stream, so `uavlae.fly --all` reproduces its numbers
         "eval_seed": int(saved.trainer.eval_seed),
