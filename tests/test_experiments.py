@@ -838,3 +838,10 @@ def test_every_report_helper_is_written_once_in_the_toolkit():
             if isinstance(node, ast.Call) and (what := does_io(node)):
                 found.append(f"{path.name}:{node.lineno} {what}")
     assert found == []
+
+
+def test_a_flag_cell_reads_as_the_records_and_other_tables_write_it():
+    from uavlae.experiments.reporting import cell_true
+
+    assert [cell_true(v) for v in ("True", "true", " TRUE ", "1", "1.0", 1, True)] == [True] * 7
+    assert [cell_true(v) for v in ("False", "false", "0", "0.0", "", "yes", 0, False)] == [False] * 8

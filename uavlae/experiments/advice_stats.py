@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uavlae.experiments.reporting import cell_true
+
 METRICS = ("DCR", "CR", "SLR", "RVR", "ECR")
 HIGHER_BETTER = ("DCR", "SLR")
 FIELDS = ("collected", "total", "collided", "landed", "rz", "energy", "energy_total")
@@ -84,7 +86,7 @@ def grid_from_rows(rows: list[dict]) -> Grid:
         return np.array([[cast(index[(s, n)][col]) for n in scenarios] for s in seeds], dtype=float)
 
     def flag(v) -> float:
-        return 1.0 if str(v) in ("True", "true", "1", "1.0") else 0.0
+        return 1.0 if cell_true(v) else 0.0
 
     return Grid(seeds, arr("data_collected"), arr("data_total"), arr("collided", flag), arr("landed", flag),
                 arr("rz_speeding", flag), arr("energy_used"), arr("energy_total"))

@@ -29,7 +29,7 @@ import torch
 from uavlae.envs import make_env_config
 from uavlae.envs.metrics import PAPER_METRICS
 from uavlae.envs.scenario import sample_scenarios, save_scenarios, unstack_scenarios
-from uavlae.experiments.reporting import markdown_table, read_json, read_rows, write_text
+from uavlae.experiments.reporting import cell_true, markdown_table, read_json, read_rows, write_text
 from uavlae.files import dump_json, portable
 from uavlae.machine import describe_machine
 
@@ -74,7 +74,7 @@ def main() -> None:
                 metrics = {k: final[f"eval/{k}"] for k in (*PAPER_METRICS, "mean_length")}
                 rows = read_rows(next((run_dir / "eval").glob("*/episodes.csv")))
                 for k in EVENTS:  # the share of episodes that ended in each kind of collision
-                    metrics[f"{k}_rate"] = sum(str(r[k]).lower() in ("true", "1", "1.0") for r in rows) / len(rows)
+                    metrics[f"{k}_rate"] = sum(cell_true(r[k]) for r in rows) / len(rows)
                 shown = [c if not c.startswith("run_dir=") else "run_dir=<tmp>" for c in cmd[1:]]
                 runs.append({"method": method, "eval_set": set_name, "episodes": final.get("eval/n_episodes"),
                              "metrics": metrics, "wall_s": round(wall, 1),

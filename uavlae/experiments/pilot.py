@@ -39,7 +39,7 @@ from typing import Any
 
 from uavlae.experiments.advice import EPISODE_COLUMNS
 from uavlae.experiments.advice_stats import METHOD_NAME, METRICS, difference, grid_from_rows, interval
-from uavlae.experiments.reporting import fmt_interval, markdown_table, read_json, read_rows, read_scalar, write_csv, write_text
+from uavlae.experiments.reporting import cell_true, fmt_interval, markdown_table, read_json, read_rows, read_scalar, write_csv, write_text
 from uavlae.entry import command
 from uavlae.errors import InputError
 from uavlae.files import train_eval_dir
@@ -514,7 +514,7 @@ def _energy_split(pilot: list[dict[str, str]], greedy: list[dict[str, str]] | No
     """Where the pilot's ECR goes: the share spent in episodes that did not land (they fly on to
     T_max or end early), and the mean energy of a landed mission against the greedy heuristic's."""
     def landed(rows: list[dict[str, str]]) -> list[dict[str, str]]:
-        return [r for r in rows if str(r["landed"]).lower() in ("true", "1", "1.0")]
+        return [r for r in rows if cell_true(r["landed"])]
 
     total = sum(float(r["energy_total"]) for r in pilot)
     used = sum(float(r["energy_used"]) for r in pilot)

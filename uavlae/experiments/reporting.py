@@ -40,6 +40,12 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+def cell_true(value: Any) -> bool:
+    """Whether a CSV cell holds a true flag: the records write bools as ``True``/``False``, and
+    tables built elsewhere (pandas, a spreadsheet) as ``true``, ``1`` or ``1.0``."""
+    return str(value).strip().lower() in ("true", "1", "1.0")
+
+
 def read_scalar(run_dir: Path, name: str) -> list[tuple[float, float]]:
     """``(step, value)`` of the scalar ``name`` a run logged (``logs/scalars/<name>.csv``: torchrl's
     CSV logger, ``step,value`` lines without a header); none when the run never logged it. A line
