@@ -508,6 +508,10 @@ RUNG_TEACH_ALL = +exp=sac_heuristic_planner env.obs_frame=ego safety_filter.mode
 # no-fly zone, asking to fly through it while the filter holds them (pilot-stalls); with the wish
 # stored, the critic sees that asking brings no progress there
 RUNG_WISH_TEACH_ALL = $(RUNG_TEACH_ALL) safety_filter.learn_from=proposed
+# teaching everywhere with every row labelled (DAgger): the planner's answer is stored on the rows
+# the actor flies too, and cloning pulls toward it there, so the actor is taught on the states it
+# reaches itself (where the verdict's pilots stall), not only on the planner's
+RUNG_LABELS = $(RUNG_TEACH_ALL) advisor.label_all=true
 # safety learned instead of imposed in training: the Lagrangian on the cost with RZ speeding counted
 # (docs/model.md §7, limit 0.05), the filter at deployment only (in training it leaves no event
 # for the cost to count)
@@ -516,12 +520,12 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=deploy env.reward.p
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-screen-labels pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-lag pilot-screen-learner
+	pilot-screen-labels pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -543,6 +547,8 @@ pilot-screen-teach-all: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_TEACH_ALL) experiment.method=sac_ego_filter_shaped_teach_all
 pilot-screen-wish-teach-all: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WISH_TEACH_ALL) experiment.method=sac_ego_filter_shaped_wish_teach_all
+pilot-screen-labels: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_LABELS) experiment.method=sac_ego_filter_shaped_teach_all_labels
 pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_shaped
 pilot-screen-learner: $(STAMP)

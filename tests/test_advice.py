@@ -219,6 +219,60 @@ def test_clone_weight_decays_linearly_to_zero():
     assert sac._clone_mask(batch) is None  # weight 0: no cloning work at all
 
 
+@pytest.mark.parametrize("impl", ["fused", "torchrl"])
+def test_clone_toward_teacher_labels_by_hand(impl):
+    """Every row is the actor's own (no advice executed) but carries the teacher's label: the
+    deterministic action is (0.5, 0) everywhere; labels (1, -1), (0, 0), (0.5, 0.5), (-1, 1), the
+    second not labelled (advice_ok False). w / 4 * ((0.25 + 1) + 0.25 + (2.25 + 1)) = w * 4.75 / 4,
+    so 2.375 at w = 2; the replayed actions (all zero) play no part."""
+    sac = make_sac({"clone_weight": 2.0, "clone_scale": "none", "loss_impl": impl}, 3, Bounded(-1.0, 1.0, shape=(2,)))
+    last = sac._fused.actor_layers[-1] if impl == "fused" else None
+    with torch.no_grad():
+        if last is None:
+            last = [m for m in sac.actor.modules() if isinstance(m, nn.Linear)][-1]
+            w_out, b_out = last.weight, last.bias
+        else:
+            w_out, b_out = last
+        w_out.zero_()
+        b_out[:2] = torch.tensor([math.atanh(0.5), 0.0])
+    batch = random_batch(4, 3, seed=0)
+    batch["action"] = torch.zeros(4, 2)
+    batch["action_source"] = torch.full((4,), POLICY)
+    batch["advice"] = torch.tensor([[1.0, -1.0], [0.0, 0.0], [0.5, 0.5], [-1.0, 1.0]])
+    batch["advice_ok"] = torch.tensor([True, False, True, True])
+    logs = sac.update(batch)
+    assert logs["loss_clone"] == pytest.approx(2.375, rel=1e-5)
+
+
+def test_teacher_labels_every_row_with_the_heuristics_answer():
+    """Under fixed_prob 0.5 with label_all, every row carries the greedy heuristic's answer as
+    if it flew that row every slot (a reference greedy stepped on the whole batch beside it); the
+    rows the advisor acted on executed exactly that label, the others the actor's action. In
+    evaluation nothing is labelled; an advisor that cannot label is refused."""
+    env = UAVEnv(batch_size=[8], seed=5)
+    reference = GreedyPolicy(env.cfg)
+    actor = TensorDictModule(ConstActor(), in_keys=["observation"], out_keys=["action"])
+    policy = OverridePolicy(actor, HeuristicAdvisor(GreedyPolicy(env.cfg)), mode="fixed_prob", fp=0.5, seed=3,
+                            label_all=True)
+    td = env.reset()
+    advised = own = 0
+    for _ in range(40):
+        ref = reference.act(td.get("state")).clamp(-1, 1)
+        td = policy(td)
+        torch.testing.assert_close(td.get("advice"), ref)
+        assert bool(td.get("advice_ok").all())
+        by_advisor = td.get("action_source") == HEURISTIC
+        torch.testing.assert_close(td.get("action")[by_advisor], ref[by_advisor])
+        torch.testing.assert_close(td.get("action")[~by_advisor], torch.tensor([0.25, -0.25]).expand(int((~by_advisor).sum()), 2))
+        advised, own = advised + int(by_advisor.sum()), own + int((~by_advisor).sum())
+        _, td = env.step_and_maybe_reset(td)
+    assert advised > 60 and own > 60
+    with policy.actor_only():
+        assert "advice" not in policy(td.exclude("advice", "advice_ok")).keys()
+    with pytest.raises(ValueError, match="label_all"):
+        OverridePolicy(actor, FixedAdvisor([1.0, 1.0]), mode="always", label_all=True)
+
+
 def test_clone_needs_an_advisor_and_action_source():
     from uavlae.algos.sac import make_sac_config
 

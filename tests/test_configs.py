@@ -102,6 +102,18 @@ def test_stronger_learners_compose(hydra_ctx):
         validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
 
 
+@pytest.mark.parametrize("overrides, problem", [
+    (("+exp=sac_llm", "advisor.label_all=true", "algo.clone_weight=0.4"), "only the heuristic"),
+    (("+exp=sac_heuristic_planner", "advisor.label_all=true"), r"algo\.clone_weight is 0"),
+])
+def test_teacher_labels_need_the_heuristic_and_a_cloning_term(hydra_ctx, overrides, problem):
+    cfg = _compose(*overrides)
+    with pytest.raises(ValueError, match=problem):
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+    good = _compose("+exp=pilot", "advisor.label_all=true")
+    validate_config(OmegaConf.create(OmegaConf.to_container(good, resolve=True)))
+
+
 def test_advisor_on_an_on_policy_learner_is_rejected(hydra_ctx):
     cfg = _compose("+exp=ppo", "advisor=heuristic_override")
     with pytest.raises(ValueError, match="on-policy"):

@@ -502,3 +502,15 @@ def test_keep_best_keeps_the_networks_of_the_best_evaluation(tmp_path):
     recorded = json.loads((run_dir / "eval" / f"frames_{want:09d}" / "metrics.json").read_text())
     for k in ("DCR", "SLR", "CR", "RVR", "ECR"):
         assert got[k] == pytest.approx(recorded[k], abs=1e-9)
+
+
+def test_teacher_labels_reach_the_replay_buffer(tmp_path):
+    """`+exp=pilot advisor.label_all=true`: every stored row carries the planner's label, the
+    rows the actor flew itself included (the phase-out ends at 64 of 256 frames), and the
+    checkpoint keeps them for a resume."""
+    run_dir = tmp_path / "labels"
+    _run("pilot", run_dir, "advisor.label_all=true", "advisor.phase_out_frames=64", "trainer.total_frames=256")
+    rows = torch.load(run_dir / "checkpoints" / LAST, weights_only=False)["replay_buffer"]["filled_rows"]
+    assert int(rows["advice_ok"].sum()) == 256
+    assert float(rows["advice"].abs().max()) <= 1.0
+    assert 0 < int((rows["action_source"] == 2).sum()) < 128  # the planner acted on a few early rows only

@@ -48,7 +48,7 @@ NestedKey = str | tuple[str, ...]
 # What a learner needs of a transition; the bulky static ("state", ...) entries are left out.
 # Missing keys are skipped, so this serves SAC/DDPG (replay) and PPO/CPO (log-probs) alike.
 TRANSITION_KEYS: tuple[NestedKey, ...] = (
-    "observation", "action", "action_source", "action_log_prob",
+    "observation", "action", "action_source", "action_log_prob", "advice", "advice_ok",
     "done", "terminated", "truncated",
     ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done"),
     ("next", "terminated"), ("next", "truncated"), ("next", "events"), ("next", "reward_terms"),

@@ -144,6 +144,8 @@ class AdvisorConfig(StrictModel):
     max_calls: int | None = Field(None, ge=0)  # rows asked of the advisor in the run; None: no budget
     phase_out_frames: int | None = Field(None, ge=1)  # anneal d_th / fp to 0 over these frames; None: never
     agree_tol: float = Field(0.1, gt=0)  # action units: the actor agrees with executed advice within this
+    # beyond the paper: the advisor labels every row, the actor's own too, for the cloning term (DAgger)
+    label_all: bool = False
     # beyond the paper: a student network trained on the LLM's answers answers where it is sure,
     # the LLM where it is not (uavlae.policies.student)
     amortize: bool = False
@@ -156,6 +158,9 @@ class AdvisorConfig(StrictModel):
         if self.amortize and self.kind != "llm":
             raise ValueError(f"advisor.amortize learns from an LLM's answers; advisor.kind={self.kind!r} has none "
                              "(use it with +exp=sac_llm or sac_llm_fp)")
+        if self.label_all and self.kind != "heuristic":
+            raise ValueError(f"advisor.label_all labels every row with the advisor's answer, which only the heuristic "
+                             f"gives at no cost; advisor.kind={self.kind!r} (use it with +exp=sac_heuristic_planner)")
         if self.phase_out_frames is not None and self.mode not in ("proximity", "fixed_prob"):
             raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); "
                              f"advisor.mode={self.mode!r} has neither")
@@ -219,6 +224,9 @@ def validate_config(cfg: DictConfig) -> None:
                 f"algo.clone_weight={cfg.algo.clone_weight} clones the executed advice, but advisor.kind is 'none': "
                 "there is none to clone (use +exp=sac_heuristic, sac_llm, ... or clone_weight=0)"
             )
+        if adv.label_all and not float(cfg.algo.get("clone_weight", 0.0) or 0.0) > 0:
+            raise ValueError("advisor.label_all labels every row for the cloning term, but algo.clone_weight is 0 "
+                             f"(algo {name!r}): set algo.clone_weight > 0, or advisor.label_all=false")
         if adv.kind != "none" and name not in OFF_POLICY:
             raise ValueError(
                 f"advisor.kind={adv.kind!r} with algo {name!r}: the override stores executed actions for an "
@@ -343,6 +351,7 @@ def make_policy(advisor_cfg: Any, actor: Any, env_cfg: EnvConfig, *, seed: int,
         perception_radius=env_cfg.safety.perception_radius,
         phase_out_frames=adv.phase_out_frames,
         agree_tol=adv.agree_tol,
+        label_all=adv.label_all,
     )
 
 

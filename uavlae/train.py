@@ -89,7 +89,7 @@ log = logging.getLogger(__name__)
 
 # What the replay buffer keeps of a transition (the collector already dropped the raw state).
 REPLAY_KEYS = (
-    "observation", "action", "action_source",
+    "observation", "action", "action_source", "advice", "advice_ok",  # the teacher's labels: advisor.label_all
     ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done"),
     ("next", "terminated"), ("next", "truncated"),
 )

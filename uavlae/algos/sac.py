@@ -18,7 +18,9 @@ advice, so an advisor's skill reaches the actor and not only the critic. On the 
 whose ``action_source`` is an advisor's own answer (LLM, heuristic, student or scripted:
 ``uavlae.policies.override.ADVICE_SOURCES``; never the actor's own rows nor a failed advisor's
 fallback), the actor's deterministic action ``tanh(loc)`` is pulled toward the replayed action
-by a squared error, averaged over the whole sample (rows without advice add 0)::
+by a squared error, averaged over the whole sample (rows without advice add 0). With teacher
+labels (``advisor.label_all``: the replayed rows carry ``"advice"``, the advisor's answer on every
+row, the actor's own included) the pull is toward the label on every labelled row (DAgger)::
 
     L_clone = w_t * mean_i m_i * ||tanh(loc_i) - a_i||^2
 
@@ -181,9 +183,12 @@ class SAC:
         self.clone_now = w if decay is None else w * max(0.0, 1.0 - frames / decay)
 
     def _clone_mask(self, batch: TensorDictBase) -> torch.Tensor | None:
-        """Bool ``[N]``: the replayed rows an advisor acted on (None: cloning off now)."""
+        """Bool ``[N]``: the replayed rows an advisor acted on, or with teacher labels the rows it
+        labelled (None: cloning off now)."""
         if self.clone_now <= 0:
             return None
+        if "advice_ok" in batch.keys():
+            return batch.get("advice_ok").reshape(-1)
         source = batch.get("action_source", None)
         if source is None:
             raise KeyError("algo.clone_weight > 0 needs 'action_source' in the replayed batch")
@@ -192,7 +197,7 @@ class SAC:
     def _step(self, batch: TensorDictBase, mask: torch.Tensor | None) -> dict[str, torch.Tensor]:
         relative = self.cfg.clone_scale == "actor_loss"
         if self._fused is not None:
-            out, grads = self._fused.grads(batch, self.clone_now, mask, relative)
+            out, grads = self._fused.grads(batch, self.clone_now, mask, relative, clone_target(batch))
             for p, g in zip(self._fused.params, grads):
                 p.grad = g
             norms = apply_gradients(self.optimisers, self.cfg.max_grad_norm)
@@ -214,7 +219,7 @@ class SAC:
         loss_clone = torch.zeros(())
         if mask is not None:
             w = self.clone_now * (max(abs(float(out["loss_actor"].detach())), 1.0) if relative else 1.0)
-            loss_clone = clone_loss(self.actor, batch.get("observation"), batch.get("action"), mask, w)
+            loss_clone = clone_loss(self.actor, batch.get("observation"), clone_target(batch), mask, w)
         out["loss_clone"] = loss_clone
         return out
 
@@ -244,6 +249,12 @@ class SAC:
         if set(state["optimisers"]) == set(_GROUPS):  # written before the optimisers were merged
             state = {**state, "optimisers": {"sac": _merge_adam_states(state["optimisers"])}}
         self.num_updates = load_parts_state_dict(self._parts(), state)
+
+
+def clone_target(batch: TensorDictBase) -> torch.Tensor:
+    """What the cloning term pulls the actor toward: the teacher's labels (``"advice"``, written
+    with ``advisor.label_all``) where the batch has them, else the replayed action."""
+    return batch.get("advice") if "advice" in batch.keys() else batch.get("action")
 
 
 def clone_loss(actor: ProbabilisticActor, obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor,

@@ -226,23 +226,26 @@ class FusedSACGrad:
 
     def grads(
         self, batch: TensorDictBase, clone_weight: float = 0.0, clone_mask: torch.Tensor | None = None,
-        clone_relative: bool = False,
+        clone_relative: bool = False, clone_target: torch.Tensor | None = None,
     ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
         """``clone_weight`` and ``clone_mask`` ``[N]`` (bool: the rows whose replayed action
         the actor is pulled toward): the cloning term, see the module doc. ``clone_relative``:
         the weight is multiplied by ``max(|loss_actor|, 1)`` (detached), as
-        :func:`uavlae.algos.sac.clone_weight_now` does for the torchrl path."""
+        :meth:`uavlae.algos.sac.SAC._losses` does for the torchrl path. ``clone_target``
+        ``[N, act]``: what it pulls toward, in place of the replayed action (teacher labels)."""
         nxt = batch.get("next")
         obs, act = batch.get("observation"), batch.get("action")
         next_obs = nxt.get("observation")
         reward = nxt.get("reward").reshape(-1)
         not_term = (~nxt.get("terminated")).reshape(-1)
         with torch.no_grad():
-            return self._grads(obs, act, next_obs, reward, not_term, clone_weight, clone_mask, clone_relative)
+            return self._grads(obs, act, next_obs, reward, not_term, clone_weight, clone_mask, clone_relative,
+                               clone_target)
 
     def _grads(
         self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor, not_term: torch.Tensor,
         clone_weight: float = 0.0, clone_mask: torch.Tensor | None = None, clone_relative: bool = False,
+        clone_target: torch.Tensor | None = None,
     ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
         n_obs = obs.shape[0]
         inv_n = 1.0 / n_obs
@@ -298,7 +301,8 @@ class FusedSACGrad:
         g_loc = g_x  # x = loc + eps * scale
         if clone_weight > 0 and clone_mask is not None:
             w = clone_weight * (max(abs(float(loss_actor)), 1.0) if clone_relative else 1.0)
-            loss_clone, g_clone = self._clone(cur["loc"], act, clone_mask, w, inv_n)
+            target_a = act if clone_target is None else clone_target
+            loss_clone, g_clone = self._clone(cur["loc"], target_a, clone_mask, w, inv_n)
             g_loc = g_x + g_clone
         a_grads = self._actor_back(torch.cat([g_loc, g_raw], dim=1), cur)
         loss_alpha = (-log_alpha * (logp + self.target_entropy)).mean()

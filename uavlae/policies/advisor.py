@@ -18,6 +18,7 @@ hook                default
 ``advise``          abstract
 ``start``           ``advise`` answered at once, wrapped in an :class:`Answered` handle
 ``observe``         nothing: an advisor that remembers earlier slots follows every row here
+``label``           None: its answer for every row of the step just observed, had it been asked
 ``snapshot``        no counters
 ``latencies``       None: it times no calls (no latency quantiles in the run's totals)
 ``price``           None: no price per token (the money is NaN where ``asks_llm``)
@@ -111,6 +112,13 @@ class Advisor(abc.ABC):
         """The whole batch, at every step the override is on, before any row is asked: an
         advisor whose answers depend on earlier slots keeps that memory per env row here,
         however the set of triggered rows changes from slot to slot. By default: nothing."""
+
+    def label(self) -> Tensor | None:
+        """Its answer ``[B, 2]`` for every row of the batch :meth:`observe` was just given, had
+        each been asked, where it has one at no extra cost (a teacher's label for the rows the
+        actor flies, :class:`uavlae.policies.override.OverridePolicy`'s ``label_all``); None: it
+        has none. Nothing is counted as advice and nothing it remembers changes."""
+        return None
 
     def snapshot(self, reset: bool = False) -> dict[str, float]:
         """Its counters since the last reset (``reset``: start a new window); the override logs
@@ -211,6 +219,11 @@ class HeuristicAdvisor(InProcessAdvisor):
     def act(self, td_rows: TensorDictBase, rows: Tensor) -> Tensor:
         step, self._step = self._step, None
         return step[rows.to(step.device)] if step is not None else self.heuristic.act(td_rows.get("state"))
+
+    def label(self) -> Tensor | None:
+        """Every row's answer of the step :meth:`observe` computed (it steps the heuristic on the
+        whole batch anyway): the rows the actor flies get the label at no cost."""
+        return None if self._step is None else self._step.clone()
 
     def own_state(self) -> dict[str, Any]:
         """The heuristic's memory (checkpoints: exact resume)."""

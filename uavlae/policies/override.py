@@ -56,6 +56,14 @@ trigger linearly to nothing over the first ``F`` frames the override acts on (``
 proximity mode, ``fp`` in fixed-probability mode, scaled by ``1 - frames / F``; from ``F`` on
 no row is triggered), so the actor flies alone before training ends.
 
+Teacher labels, beyond the paper (off by default): with ``label_all`` the advisor's answer for
+every row of the step, asked or not, is written to ``"advice"`` ``[B, 2]`` (``"advice_ok"``
+``[B]`` bool: the rows it labelled), taken from :meth:`Advisor.label` (an advisor that computes
+every row's answer anyway, as the heuristic does in ``observe``; others refuse it). The rows the
+actor flies itself are labelled too, so a cloning term (``algo.clone_weight``) pulls the actor
+toward the teacher on the states the actor visits, not only on the teacher's own (DAgger, Ross
+et al. 2011); the trigger still decides who acts. Nothing is labelled in evaluation.
+
 Dependence, counted every step the override is on: the advised fraction (advice executed /
 frames), the trigger rate and, on the rows where advice was executed, the gap between the
 advice and the actor's own deterministic action there (``tanh`` of its ``"loc"`` when the actor
@@ -151,6 +159,7 @@ class Pending:
     rows: Tensor  # [n] int64: the rows sent to the advisor
     handle: Handle | None  # the advisor's handle (result()), None when no row was sent
     started_at: float  # time.perf_counter() when the requests were sent
+    labels: Tensor | None = None  # [B, 2]: the advisor's answer for every row (label_all), else None
 
     @property
     def done_at(self) -> float | None:
@@ -185,6 +194,8 @@ class OverridePolicy(TensorDictModuleBase):
         phase_out_frames: anneal the trigger to nothing over this many frames (None: never).
         agree_tol: the distance (action units) within which the actor counts as agreeing
             with the executed advice.
+        label_all: write the advisor's answer for every row to ``"advice"`` / ``"advice_ok"``
+            (teacher labels, module doc); the advisor must give :meth:`Advisor.label`.
     """
 
     out_keys = ["action", "action_source", "override_abort"]
@@ -204,6 +215,7 @@ class OverridePolicy(TensorDictModuleBase):
         perception_radius: float = math.inf,
         phase_out_frames: int | None = None,
         agree_tol: float = 0.1,
+        label_all: bool = False,
     ):
         super().__init__()
         if mode not in MODES:
@@ -234,6 +246,10 @@ class OverridePolicy(TensorDictModuleBase):
                 raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); mode {mode!r} has neither")
         if not agree_tol > 0:
             raise ValueError(f"advisor.agree_tol must be > 0 (action units), got {agree_tol!r}")
+        if label_all and (advisor is None or type(advisor).label is Advisor.label):
+            raise ValueError(f"advisor.label_all labels every row with the advisor's answer, which needs an advisor that "
+                             f"answers every row anyway (advisor.kind=heuristic); "
+                             f"{'there is no advisor' if advisor is None else type(advisor).__name__ + ' gives none'}")
         self.actor = actor
         # plain attributes, not submodules: never in state_dict, never moved by .to()
         self.__dict__["advisor"] = advisor
@@ -250,6 +266,9 @@ class OverridePolicy(TensorDictModuleBase):
         self.perception_radius = float(perception_radius)
         self.phase_out_frames = None if phase_out_frames is None else int(phase_out_frames)
         self.agree_tol = float(agree_tol)
+        self.label_all = bool(label_all)
+        if self.label_all:
+            self.out_keys = [*self.out_keys, "advice", "advice_ok"]
         self.deterministic = False  # evaluation / deployment: actor alone, deterministic
         # bool [B]: the rows that may be triggered at all (None: every row); the LLM-alone
         # evaluation clears a row once its episode has ended, so it is never asked again
@@ -356,9 +375,15 @@ class OverridePolicy(TensorDictModuleBase):
     def begin(self, td: TensorDictBase) -> Pending:
         """The first half of a step: the triggered rows (from the state alone) and their advice,
         sent; held answers and the call budget decide which rows are asked."""
+        labels = None
         if self.override_active:
             with torch.no_grad():
                 self.advisor.observe(td)  # a stateful advisor follows every row, every slot
+                if self.label_all:
+                    labels = self.advisor.label()
+                    if labels is None:
+                        raise RuntimeError(f"advisor.label_all: {type(self.advisor).__name__} gave no labels "
+                                           "after observing the batch")
         trig = self.trigger(td)
         B = trig.shape[0]
         none = torch.zeros(B, dtype=torch.bool, device=trig.device)
@@ -380,7 +405,8 @@ class OverridePolicy(TensorDictModuleBase):
             self.calls_used += int(rows.numel())
             with torch.no_grad():
                 handle = self.advisor.start(td[rows], rows)
-        return Pending(trig=trig, held=held, skipped=skipped, rows=rows, handle=handle, started_at=started)
+        return Pending(trig=trig, held=held, skipped=skipped, rows=rows, handle=handle, started_at=started,
+                       labels=labels)
 
     def finish(self, td: TensorDictBase, pending: Pending) -> TensorDictBase:
         """The second half: the actor acts, the answers are awaited and merged."""
@@ -432,6 +458,9 @@ class OverridePolicy(TensorDictModuleBase):
             self._update_hold(td, trig, held, good, action, source)
         td.set("action_source", source)
         td.set("override_abort", abort)
+        if pending.labels is not None:
+            td.set("advice", pending.labels.to(device=action.device, dtype=action.dtype).clamp(-1.0, 1.0))
+            td.set("advice_ok", torch.ones(B, dtype=torch.bool, device=action.device))
         if self.override_active:
             self._count(source, trig, abort, held, pending.skipped, int(rows.numel()), wait)
             self._count_agreement(td, own, action, source)
