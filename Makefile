@@ -512,6 +512,9 @@ RUNG_WISH_TEACH_ALL = $(RUNG_TEACH_ALL) safety_filter.learn_from=proposed
 # the actor flies too, and cloning pulls toward it there, so the actor is taught on the states it
 # reaches itself (where the verdict's pilots stall), not only on the planner's
 RUNG_LABELS = $(RUNG_TEACH_ALL) advisor.label_all=true
+# the labels with five times the pull: does the actor follow the planner in its own states at all
+# once cloning outweighs the critic?
+RUNG_LABELS_STRONG = $(RUNG_LABELS) algo.clone_weight=2.0
 # safety learned instead of imposed in training: the Lagrangian on the cost with RZ speeding counted
 # (docs/model.md §7, limit 0.05), the filter at deployment only (in training it leaves no event
 # for the cost to count)
@@ -520,12 +523,12 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=deploy env.reward.p
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-lag pilot-screen-learner
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -549,6 +552,8 @@ pilot-screen-wish-teach-all: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WISH_TEACH_ALL) experiment.method=sac_ego_filter_shaped_wish_teach_all
 pilot-screen-labels: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LABELS) experiment.method=sac_ego_filter_shaped_teach_all_labels
+pilot-screen-labels-strong: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_LABELS_STRONG) experiment.method=sac_ego_filter_shaped_teach_all_labels_strong
 pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_shaped
 pilot-screen-learner: $(STAMP)

@@ -293,7 +293,8 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
           "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
           "sac_ego_filter_shaped_wish_teach", "sac_ego_filter_shaped_teach_all",
-          "sac_ego_filter_shaped_wish_teach_all", "sac_ego_filter_shaped_teach_all_labels", "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
+          "sac_ego_filter_shaped_wish_teach_all", "sac_ego_filter_shaped_teach_all_labels",
+          "sac_ego_filter_shaped_teach_all_labels_strong", "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -368,6 +369,7 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "sac_ego_filter_shaped_teach_all": "sac_ego_filter_shaped_teach",
           "sac_ego_filter_shaped_wish_teach_all": "sac_ego_filter_shaped_teach_all",
           "sac_ego_filter_shaped_teach_all_labels": "sac_ego_filter_shaped_teach_all",
+          "sac_ego_filter_shaped_teach_all_labels_strong": "sac_ego_filter_shaped_teach_all_labels",
           "saclag_ego_shaped": "sac_ego_filter_shaped"}
 
 
