@@ -256,6 +256,7 @@ def test_teacher_labels_every_row_with_the_heuristics_answer():
                             label_all=True)
     td = env.reset()
     advised = own = 0
+    gap_sum = 0.0  # the actor's own (0.25, -0.25) against the label, on the rows it flew
     for _ in range(40):
         ref = reference.act(td.get("state")).clamp(-1, 1)
         td = policy(td)
@@ -265,8 +266,11 @@ def test_teacher_labels_every_row_with_the_heuristics_answer():
         torch.testing.assert_close(td.get("action")[by_advisor], ref[by_advisor])
         torch.testing.assert_close(td.get("action")[~by_advisor], torch.tensor([0.25, -0.25]).expand(int((~by_advisor).sum()), 2))
         advised, own = advised + int(by_advisor.sum()), own + int((~by_advisor).sum())
+        gap_sum += float(torch.linalg.vector_norm(ref[~by_advisor] - torch.tensor([0.25, -0.25]), dim=-1).sum())
         _, td = env.step_and_maybe_reset(td)
     assert advised > 60 and own > 60
+    snap = policy.snapshot()
+    assert snap["label_rows"] == own and snap["label_gap"] == pytest.approx(gap_sum / own, rel=1e-5)
     with policy.actor_only():
         assert "advice" not in policy(td.exclude("advice", "advice_ok")).keys()
     with pytest.raises(ValueError, match="label_all"):

@@ -68,7 +68,8 @@ Dependence, counted every step the override is on: the advised fraction (advice 
 frames), the trigger rate and, on the rows where advice was executed, the gap between the
 advice and the actor's own deterministic action there (``tanh`` of its ``"loc"`` when the actor
 writes one, else its action): ``actor_gap`` (mean L2 distance, action units) and
-``actor_agree`` (the fraction within ``agree_tol`` of it).
+``actor_agree`` (the fraction within ``agree_tol`` of it); with teacher labels, ``label_gap``: the
+same distance to the label on the rows the actor flew itself.
 
 Fewer calls, beyond the paper (both off by default, both counted in :meth:`snapshot`):
 
@@ -459,8 +460,10 @@ class OverridePolicy(TensorDictModuleBase):
         td.set("action_source", source)
         td.set("override_abort", abort)
         if pending.labels is not None:
-            td.set("advice", pending.labels.to(device=action.device, dtype=action.dtype).clamp(-1.0, 1.0))
+            labels = pending.labels.to(device=action.device, dtype=action.dtype).clamp(-1.0, 1.0)
+            td.set("advice", labels)
             td.set("advice_ok", torch.ones(B, dtype=torch.bool, device=action.device))
+            self._count_label_gap(td, own, labels, source)
         if self.override_active:
             self._count(source, trig, abort, held, pending.skipped, int(rows.numel()), wait)
             self._count_agreement(td, own, action, source)
@@ -496,6 +499,22 @@ class OverridePolicy(TensorDictModuleBase):
         for c in (self.counts, self.totals):
             for k, v in add.items():
                 c[k] = c.get(k, 0) + v
+
+    def _count_label_gap(self, td: TensorDictBase, own: Tensor, labels: Tensor, source: Tensor) -> None:
+        """How far the actor's own deterministic action lies from the teacher's label on the rows
+        the actor flew itself (``label_gap``): whether the labels teach it on its own states."""
+        if self._active_actor is not None:
+            return
+        mine_rows = source == POLICY
+        n = int(mine_rows.sum())
+        if not n:
+            return
+        loc = td.get("loc", None)
+        mine = loc.tanh() if loc is not None and loc.shape == own.shape else own
+        gap = torch.linalg.vector_norm(mine[mine_rows].float() - labels[mine_rows].float(), dim=-1)
+        for c in (self.counts, self.totals):
+            c["label_rows"] = c.get("label_rows", 0) + n
+            c["label_gap_sum"] = c.get("label_gap_sum", 0.0) + float(gap.sum())
 
     # ------------------------------------------------------------------ held answers
     def _hold_state(self, B: int, device: torch.device) -> dict[str, Tensor]:
@@ -547,6 +566,8 @@ class OverridePolicy(TensorDictModuleBase):
         gap_rows = c.get("gap_rows", 0)
         c["actor_gap"] = c.get("gap_sum", 0.0) / gap_rows if gap_rows else nan
         c["actor_agree"] = c.get("agree_rows", 0) / gap_rows if gap_rows else nan
+        if c.get("label_rows"):  # teacher labels (label_all): the actor's distance to them on its own rows
+            c["label_gap"] = c["label_gap_sum"] / c["label_rows"]
         return c
 
     def _with_settings(self, counts: dict[str, Any]) -> dict[str, Any]:
