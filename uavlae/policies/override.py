@@ -171,6 +171,46 @@ class Pending:
 # ---------------------------------------------------------------------------- the module
 
 
+def _checked_args(advisor: Advisor | None, mode: str, d_th: float, fp: float, fallback: str | None, heuristic: Any,
+                  hold_steps: int, max_calls: int | None, phase_out_frames: int | None, agree_tol: float,
+                  label_all: bool) -> tuple[str, Any]:
+    """:class:`OverridePolicy`'s arguments checked, each bad one named; returns the fallback and the
+    heuristic it resolves to (the advisor's own where none is given)."""
+    if mode not in MODES:
+        raise ValueError(f"override.mode must be one of {list(MODES)}, got {mode!r}")
+    if not (math.isfinite(d_th) and d_th >= 0):
+        raise ValueError(f"override.d_th must be a finite distance >= 0 m, got {d_th!r}")
+    if not 0.0 <= fp <= 1.0:
+        raise ValueError(f"override.fp must be in [0, 1], got {fp!r}")
+    if advisor is not None and not isinstance(advisor, Advisor):
+        raise TypeError(f"an advisor implements uavlae.policies.advisor.Advisor (the hooks this policy calls, "
+                        f"each with its default); got {type(advisor).__name__}")
+    if fallback is None:
+        fallback = (None if advisor is None else advisor.fallback) or "policy"
+    if fallback not in FALLBACKS:
+        raise ValueError(f"override.fallback must be one of {list(FALLBACKS)}, got {fallback!r}")
+    if heuristic is None and isinstance(advisor, HeuristicAdvisor):
+        heuristic = advisor.heuristic
+    if fallback == "heuristic" and heuristic is None:
+        raise ValueError("override.fallback='heuristic' needs a heuristic policy")
+    if isinstance(hold_steps, bool) or int(hold_steps) != hold_steps or hold_steps < 1:
+        raise ValueError(f"advisor.hold_steps must be an integer >= 1 (1: ask every slot), got {hold_steps!r}")
+    if max_calls is not None and (isinstance(max_calls, bool) or int(max_calls) != max_calls or max_calls < 0):
+        raise ValueError(f"advisor.max_calls must be null (no budget) or an integer >= 0, got {max_calls!r}")
+    if phase_out_frames is not None:
+        if isinstance(phase_out_frames, bool) or int(phase_out_frames) != phase_out_frames or phase_out_frames < 1:
+            raise ValueError(f"advisor.phase_out_frames must be null (never) or an integer >= 1, got {phase_out_frames!r}")
+        if mode not in ("proximity", "fixed_prob"):
+            raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); mode {mode!r} has neither")
+    if not agree_tol > 0:
+        raise ValueError(f"advisor.agree_tol must be > 0 (action units), got {agree_tol!r}")
+    if label_all and (advisor is None or type(advisor).label is Advisor.label):
+        raise ValueError(f"advisor.label_all labels every row with the advisor's answer, which needs an advisor that "
+                         f"answers every row anyway (advisor.kind=heuristic); "
+                         f"{'there is no advisor' if advisor is None else type(advisor).__name__ + ' gives none'}")
+    return fallback, heuristic
+
+
 class OverridePolicy(TensorDictModuleBase):
     """The actor, with its action overridden by an advisor on triggered rows.
 
@@ -219,38 +259,8 @@ class OverridePolicy(TensorDictModuleBase):
         label_all: bool = False,
     ):
         super().__init__()
-        if mode not in MODES:
-            raise ValueError(f"override.mode must be one of {list(MODES)}, got {mode!r}")
-        if not (math.isfinite(d_th) and d_th >= 0):
-            raise ValueError(f"override.d_th must be a finite distance >= 0 m, got {d_th!r}")
-        if not 0.0 <= fp <= 1.0:
-            raise ValueError(f"override.fp must be in [0, 1], got {fp!r}")
-        if advisor is not None and not isinstance(advisor, Advisor):
-            raise TypeError(f"an advisor implements uavlae.policies.advisor.Advisor (the hooks this policy calls, "
-                            f"each with its default); got {type(advisor).__name__}")
-        if fallback is None:
-            fallback = (None if advisor is None else advisor.fallback) or "policy"
-        if fallback not in FALLBACKS:
-            raise ValueError(f"override.fallback must be one of {list(FALLBACKS)}, got {fallback!r}")
-        if heuristic is None and isinstance(advisor, HeuristicAdvisor):
-            heuristic = advisor.heuristic
-        if fallback == "heuristic" and heuristic is None:
-            raise ValueError("override.fallback='heuristic' needs a heuristic policy")
-        if isinstance(hold_steps, bool) or int(hold_steps) != hold_steps or hold_steps < 1:
-            raise ValueError(f"advisor.hold_steps must be an integer >= 1 (1: ask every slot), got {hold_steps!r}")
-        if max_calls is not None and (isinstance(max_calls, bool) or int(max_calls) != max_calls or max_calls < 0):
-            raise ValueError(f"advisor.max_calls must be null (no budget) or an integer >= 0, got {max_calls!r}")
-        if phase_out_frames is not None:
-            if isinstance(phase_out_frames, bool) or int(phase_out_frames) != phase_out_frames or phase_out_frames < 1:
-                raise ValueError(f"advisor.phase_out_frames must be null (never) or an integer >= 1, got {phase_out_frames!r}")
-            if mode not in ("proximity", "fixed_prob"):
-                raise ValueError(f"advisor.phase_out_frames anneals d_th (proximity) or fp (fixed_prob); mode {mode!r} has neither")
-        if not agree_tol > 0:
-            raise ValueError(f"advisor.agree_tol must be > 0 (action units), got {agree_tol!r}")
-        if label_all and (advisor is None or type(advisor).label is Advisor.label):
-            raise ValueError(f"advisor.label_all labels every row with the advisor's answer, which needs an advisor that "
-                             f"answers every row anyway (advisor.kind=heuristic); "
-                             f"{'there is no advisor' if advisor is None else type(advisor).__name__ + ' gives none'}")
+        fallback, heuristic = _checked_args(advisor, mode, d_th, fp, fallback, heuristic, hold_steps, max_calls,
+                                            phase_out_frames, agree_tol, label_all)
         self.actor = actor
         # plain attributes, not submodules: never in state_dict, never moved by .to()
         self.__dict__["advisor"] = advisor
