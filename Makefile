@@ -515,6 +515,13 @@ RUNG_LABELS = $(RUNG_TEACH_ALL) advisor.label_all=true
 # the labels with five times the pull: does the actor follow the planner in its own states at all
 # once cloning outweighs the critic?
 RUNG_LABELS_STRONG = $(RUNG_LABELS) algo.clone_weight=2.0
+# the labels from the greedy controller instead of the planner: its answer comes from what the DCU
+# perceives (plus its own memory of a target and a detour side), the planner's from a distance field
+# over the whole map that the actor never sees, so the actor is asked to learn a function of its
+# own observation; greedy flies the gate's ECR and SLR floors itself (results/heuristics_table.md)
+RUNG_LABELS_GREEDY = +exp=sac_heuristic env.obs_frame=ego safety_filter.mode=train_and_deploy \
+	env.reward.progress_weight=8.0 env.reward.progress_metric=geodesic advisor.mode=fixed_prob advisor.fp=1.0 \
+	advisor.phase_out_frames=800000 algo.clone_weight=0.4 algo.clone_decay_frames=null advisor.label_all=true
 # safety learned instead of imposed in training: the Lagrangian on the cost with RZ speeding counted
 # (docs/model.md §7, limit 0.05), the filter at deployment only (in training it leaves no event
 # for the cost to count)
@@ -523,12 +530,12 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=deploy env.reward.p
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-lag pilot-screen-learner
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-lag pilot-screen-learner
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -554,6 +561,8 @@ pilot-screen-labels: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LABELS) experiment.method=sac_ego_filter_shaped_teach_all_labels
 pilot-screen-labels-strong: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LABELS_STRONG) experiment.method=sac_ego_filter_shaped_teach_all_labels_strong
+pilot-screen-labels-greedy: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_LABELS_GREEDY) experiment.method=sac_ego_filter_shaped_teach_all_labels_greedy
 pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_shaped
 pilot-screen-learner: $(STAMP)
