@@ -5,7 +5,7 @@ import csv
 import pytest
 
 from uavlae.experiments.advice import EPISODE_COLUMNS
-from uavlae.experiments.pilot import CURVE_SCALARS, EPISODE_KEYS, build, meets
+from uavlae.experiments.pilot import CURVE_SCALARS, EPISODE_KEYS, build, meets, write_records
 
 
 def _write(path, rows, fields):
@@ -20,6 +20,24 @@ def test_floors():
     assert meets(ok, 0.075) and not meets(ok, 0.06)  # ECR above the greedy heuristic's
     assert not meets({**ok, "CR": 0.03}, None) and not meets({**ok, "SLR": 0.89}, None)
     assert not meets({**ok, "RVR": float("nan")}, None)
+
+
+def test_unfinished_runs_of_earlier_roots_stay_listed_until_recorded(tmp_path):
+    """The records span several run folders: a run left unfinished under an earlier root stays in
+    unfinished.csv, unless the records now hold it finished; this root's unfinished runs join it,
+    once each however often the records are written."""
+    out, root = tmp_path / "records", tmp_path / "runs"
+    out.mkdir()
+    _write(out / "unfinished.csv", [{"path": "pilot/screen/a/seed1"}, {"path": "pilot/screen/b/seed2"}], ["path"])
+    _write(out / "runs.csv", [{"stage": "screen", "rung": "b", "seed": "2"}], ["stage", "rung", "seed"])
+    (root / "pilot/screen/c/seed3").mkdir(parents=True)
+    (root / "pilot/screen/c/seed3/config.json").write_text("{}")  # no final metrics: unfinished
+    for _ in range(2):
+        assert write_records(root, out)["unfinished"] == 2
+    with (out / "unfinished.csv").open() as fh:
+        assert [r["path"] for r in csv.DictReader(fh)] == ["pilot/screen/a/seed1", "pilot/screen/c/seed3"]
+    with (out / "runs.csv").open() as fh:
+        assert [(r["rung"], r["seed"]) for r in csv.DictReader(fh)] == [("b", "2")]
 
 
 def test_report_from_records_alone(tmp_path):

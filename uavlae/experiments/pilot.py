@@ -103,6 +103,14 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
     return run, episodes, curve_rows
 
 
+def _path_key(path: str) -> tuple[str, str, int] | None:
+    """(stage, rung, seed) of a run folder named ``pilot/<stage>/<rung>/seed<N>``; None otherwise."""
+    parts = Path(path).parts
+    if len(parts) != 4 or not parts[3].startswith("seed") or not parts[3][4:].isdigit():
+        return None
+    return parts[1], parts[2], int(parts[3][4:])
+
+
 def write_records(root: Path, out: Path) -> dict[str, int]:
     """Adds the finished runs under ``root/pilot`` to the records in ``out`` (module doc)."""
     runs, episodes, curves, unfinished = [], [], [], []
@@ -124,6 +132,11 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
         return old + new
 
     runs, episodes, curves = merged("runs.csv", runs), merged("episodes.csv", episodes), merged("curves.csv", curves)
+    # the runs still unfinished under earlier roots stay listed (the records span several run
+    # folders) until a root holds them finished
+    done = {(r["stage"], r["rung"], int(r["seed"])) for r in runs}
+    unfinished = list(dict.fromkeys([*(r["path"] for r in read_rows(out / "unfinished.csv")
+                                       if _path_key(r["path"]) not in done), *unfinished]))
     write_csv(out / "runs.csv", runs, list(dict.fromkeys(k for r in runs for k in r)) or KEY_COLUMNS)
     write_csv(out / "episodes.csv", episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
     write_csv(out / "curves.csv", curves, [*KEY_COLUMNS, "frames", *[c for _, c in CURVE_SCALARS]])
