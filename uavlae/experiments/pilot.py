@@ -308,7 +308,8 @@ LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sa
           "sac_ego_filter_shaped_wish_teach", "sac_ego_filter_shaped_teach_all",
           "sac_ego_filter_shaped_wish_teach_all", "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_strong",
-          "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide", "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
+          "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide",
+          "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -386,6 +387,7 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "sac_ego_filter_shaped_teach_all_labels_strong": "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_greedy": "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_wide": "sac_ego_filter_shaped_teach_all_labels",
+          "sac_ego_filter_shaped_teach_all_labels_wide_economy": "sac_ego_filter_shaped_teach_all_labels_wide",
           "saclag_ego_shaped": "sac_ego_filter_shaped"}
 
 
