@@ -89,3 +89,13 @@ def test_an_on_policy_learner_through_the_filter_stores_its_wish():
     assert line.startswith("safety_filter.mode=train_and_deploy with algo=ppo and safety_filter.learn_from=executed: ")
     cfg = _cfg("+exp=ppo", "safety_filter.mode=train_and_deploy", "safety_filter.learn_from=proposed")
     assert run_problems(cfg, make_env_config(cfg.env)) == []
+
+
+def test_a_deterministic_actor_cannot_fly_by_draws():
+    cfg = _cfg("+exp=ddpg", "trainer.eval_actor=sample")
+    (line,) = run_problems(cfg, make_env_config(cfg.env))
+    assert line == ("trainer.eval_actor=sample with algo=ddpg: its actor is deterministic, there is no policy to "
+                    "draw from; use trainer.eval_actor=mean")
+    for exp in ("sac", "crossq", "ppo"):
+        cfg = _cfg(f"+exp={exp}", "trainer.eval_actor=sample")
+        assert run_problems(cfg, make_env_config(cfg.env)) == []

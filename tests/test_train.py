@@ -426,10 +426,13 @@ def test_amortized_sac_llm_advises_every_trigger_and_resumes_by_replay(tmp_path,
     assert resumed["cost/llm_calls"] == 0  # all of it from the cache
 
 
-def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path):
+@pytest.mark.parametrize("actor_mode", ["mean", "sample"])
+def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode):
     """A run trained through the safety filter: the filtered action is stored and counted, the
     evaluation flies the actor through its filter and alone, the export is the pilot (actor and
-    filter in one program) and `uavlae.fly --all` reproduces both evaluations exactly."""
+    filter in one program) and `uavlae.fly --all` reproduces both evaluations exactly, with the
+    actor's mean action and with draws from its policy (trainer.eval_actor=sample: the same
+    seeded noise stream in the evaluator and in fly)."""
     from uavlae.envs import make_env_config, world
     from uavlae.export import PILOT_STATE_KEYS, export_checkpoint
     from uavlae.fly import PILOT_STATE_KEYS as FLY_KEYS, load_actor, main as fly_main, perceived, scenario_tensors
@@ -438,7 +441,7 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
     assert FLY_KEYS == PILOT_STATE_KEYS
     run_dir = tmp_path / "filtered"
     final = _run("sac", run_dir, "safety_filter.mode=train_and_deploy", "trainer.eval_max_steps=null",
-                 "trainer.eval_episodes=3")
+                 "trainer.eval_episodes=3", f"trainer.eval_actor={actor_mode}")
     assert 0 <= final["safety/train/intervention_rate"] <= 1 and final["safety/train/rows"] == 128
     assert "eval/actor/DCR" in final and "eval/safety/intervention_rate" in final
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -447,6 +450,7 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
     out = export_checkpoint(run_dir, tmp_path / "pilot.pt2")
     pilot, meta = load_actor(out)
     assert meta["kind"] == "pilot" and meta["safety_filter"]["mode"] == "train_and_deploy"
+    assert meta["actor"] == actor_mode and meta["noise_dim"] == 2 and meta["noise_seed"] == 12345
     # the exported filter acts as the in-process one on the same perceived state
     env_cfg = make_env_config(meta["env"])
     scen = json.loads((run_dir / "eval_set.json").read_text())
@@ -455,9 +459,13 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
     s = perceived(state, env_cfg)
     s_full = dict(s)
     s_full.update(world.nearest_distances(s_full, env_cfg))
-    raw = pilot(s, torch.tensor(False))
+    zero = torch.zeros(1, 2)
+    raw = pilot(s, torch.tensor(False), zero)
     expected, _, _ = SafetyFilter(env_cfg, meta["safety_filter"]).filter_action(s_full, raw)
-    torch.testing.assert_close(pilot(s, torch.tensor(True)), expected)
+    torch.testing.assert_close(pilot(s, torch.tensor(True), zero), expected)
+    # zero noise is the actor's mean action; a draw is another action inside the box
+    noisy = pilot(s, torch.tensor(False), torch.tensor([[1.5, -2.0]]))
+    assert not torch.allclose(noisy, raw) and bool((noisy.abs() <= 1).all())
 
     for extra, prefix in (([], "eval/"), (["--no-filter"], "eval/actor/")):
         res = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", *extra])
@@ -465,6 +473,19 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path)
             assert res["metrics"][k] == pytest.approx(final[prefix + k], abs=1e-6), (prefix, k)
         if not extra:
             flown = res
+    if actor_mode == "sample":  # the draws, not the mean: flying the mean instead gives other flights
+        mean = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", "--act", "mean"])
+        assert mean["metrics"]["ECR"] != pytest.approx(flown["metrics"]["ECR"], abs=1e-6)
+        # uavlae.evaluate flies the run's own mode unless its command line names one, each in its folder
+        from uavlae.evaluate import evaluate_checkpoint
+
+        tiny = [o for o in TINY if not o.startswith(("trainer.eval_max_steps", "trainer.eval_episodes"))]
+        again = evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", *tiny))
+        assert again["ECR"] == pytest.approx(final["eval/ECR"], abs=1e-9)
+        assert (run_dir / "evaluate" / "last_frames128_sample" / "metrics.json").is_file()
+        as_mean = evaluate_checkpoint(_cfg(f"checkpoint={run_dir}", *tiny, "trainer.eval_actor=mean"),
+                                      ["trainer.eval_actor=mean"])
+        assert as_mean["ECR"] == pytest.approx(mean["metrics"]["ECR"], abs=1e-6)
     # the stalls diagnosis flies the same flights: its unlanded count is the evaluation's, and
     # the filter changed the wish by at most the largest velocity difference (2 v_max)
     from uavlae.experiments.pilot import stalls

@@ -4,7 +4,8 @@ The evaluation set is sampled once with ``trainer.eval_seed`` and saved as JSON
 (``<run_dir>/eval_set.json``, or ``trainer.eval_set``), then reloaded, so every evaluation of a
 run (and of every method compared on it) flies the same scenarios. A learner is evaluated by
 its actor alone, deterministically (``ExplorationType.DETERMINISTIC``: the tanh of the mean; no
-LLM, no heuristic, as in deployment). Each evaluation writes the per-episode records
+LLM, no heuristic, as in deployment), or with ``trainer.eval_actor=sample`` by a draw from its
+policy from a seeded stream (:mod:`uavlae.policies.sampling`). Each evaluation writes the per-episode records
 (``episodes.csv``), the aggregates (``metrics.json``: DCR, CR, SLR, RVR, ECR, the mean of every
 reward term, ...) and a PNG of the first few trajectories.
 
@@ -51,6 +52,7 @@ from uavlae.llm_alone import LLMAloneEvaluation
 from uavlae.policies.override import OverridePolicy
 from uavlae.policies.random import UniformRandomPolicy
 from uavlae.policies.safety import FilteredPolicy
+from uavlae.policies.sampling import SampledActor, eval_actor
 from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import EpisodeProgress
 from uavlae.rules import world_problems
@@ -233,6 +235,8 @@ class Evaluation:
         filtered = isinstance(policy, FilteredPolicy)
         inner = policy.policy if filtered else policy  # an advised actor may fly through the filter
         override = isinstance(inner, OverridePolicy)  # its counters come back with the metrics
+        if isinstance(inner, SampledActor):
+            inner.reset()  # every flight draws the same noise
         if not self.chunked:
             if filtered:
                 policy.reset()  # this flight's interventions only
@@ -274,13 +278,17 @@ def make_evaluation(cfg: DictConfig, env_cfg: EnvConfig, scenarios: list[Scenari
 
 
 def make_flyer(cfg: DictConfig, env_cfg: EnvConfig, action_spec: Any, learner: Any = None,
-               safety_cfg: Any = None) -> Any:
-    """Who flies an evaluation: a learner's actor (deterministic: the evaluator's exploration
-    type; no override, no noise), through the safety filter of ``safety_cfg`` when its mode is
-    not ``off`` (the deployed pilot), else the controller ``cfg.controller`` names."""
+               safety_cfg: Any = None, actor_mode: str | None = None) -> Any:
+    """Who flies an evaluation: a learner's actor (no override; its mean action, the evaluator's
+    deterministic exploration, or with ``actor_mode`` ``sample`` a draw from its policy seeded with
+    ``trainer.eval_seed``; default ``cfg.trainer.eval_actor``), through the safety filter of
+    ``safety_cfg`` when its mode is not ``off`` (the deployed pilot), else the controller
+    ``cfg.controller`` names."""
     if learner is not None:
         safety = make_safety_filter(safety_cfg, env_cfg)
-        return learner.actor if safety is None else FilteredPolicy(learner.actor, safety)
+        mode = str(actor_mode or cfg.trainer.eval_actor)
+        actor = eval_actor(learner.actor, mode, int(cfg.trainer.eval_seed))
+        return actor if safety is None else FilteredPolicy(actor, safety)
     return make_controller(cfg.controller, env_cfg, seed=int(cfg.seed), heuristic=HeuristicGroup.of(cfg),
                            action_spec=action_spec, advisor_cfg=cfg.advisor, llm_cfg=cfg.llm)
 
@@ -443,6 +451,16 @@ class Target:
     saved: DictConfig | None = None
     run_dir: Path | None = None
     safety: Any = None  # the safety_filter node the actor flies through (mode off: the actor alone)
+    actor_mode: str = "mean"  # trainer.eval_actor: the actor's mean action or a draw from its policy
+
+
+def actor_mode_of(cfg: DictConfig, saved: DictConfig | None, task_overrides: Sequence[str]) -> str:
+    """How an evaluated actor acts (``trainer.eval_actor``): the command line's when it names the
+    key, else the one the run was trained with (none recorded: its mean)."""
+    named = any(o.split("=", 1)[0].lstrip("+~") == "trainer.eval_actor" for o in task_overrides)
+    if named or saved is None:
+        return str(cfg.trainer.eval_actor)
+    return str(OmegaConf.select(saved, "trainer.eval_actor", default="mean"))
 
 
 def safety_of(cfg: DictConfig, saved: DictConfig | None, task_overrides: Sequence[str]) -> Any:
@@ -491,7 +509,7 @@ def _flyer(cfg: DictConfig, t: Target, evaluation: Evaluation) -> Any:
         probe = make_env(t.env_cfg, 1, seed=0, device=cfg.device)
         learner = make_learner(t.saved.algo, probe)  # type: ignore[union-attr]
         learner.load_state_dict(t.state["learner"])
-    return make_flyer(cfg, t.env_cfg, evaluation.evaluator.env.action_spec, learner, t.safety)
+    return make_flyer(cfg, t.env_cfg, evaluation.evaluator.env.action_spec, learner, t.safety, t.actor_mode)
 
 
 def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> dict[str, float]:
@@ -513,6 +531,9 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
         raise ConfigError("\n".join(problems))
     check_llm(cfg, t.env_cfg)
     t.safety = safety_of(cfg, t.saved, task_overrides)
+    t.actor_mode = actor_mode_of(cfg, t.saved, task_overrides) if t.state is not None else "mean"
+    if t.actor_mode != "mean" and not cfg.experiment.eval_dir:  # its own folder beside the mean's
+        t.out = t.out.with_name(f"{t.out.name}_{t.actor_mode}")
     filtered = t.state is not None and make_safety_filter_config(t.safety).mode != "off"
     spec = json.loads(json.dumps({
         "checkpoint": str(t.file) if t.file else None, "frames": t.frames, "method": t.method,
@@ -520,6 +541,7 @@ def evaluate_checkpoint(cfg: DictConfig, task_overrides: Sequence[str] = ()) -> 
         "eval_episodes": int(tr.eval_episodes), "eval_seed": int(tr.eval_seed), "eval_max_steps": tr.eval_max_steps,
         "seed": int(cfg.seed),
         **({"safety_filter": OmegaConf.to_container(t.safety, resolve=True)} if filtered else {}),
+        **({"eval_actor": t.actor_mode} if t.actor_mode != "mean" else {}),
     }, default=str))
     done = _done(t.out / "evaluation.json", spec) if cfg.experiment.reuse else None
     if done is not None:

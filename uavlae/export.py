@@ -4,7 +4,10 @@
 :class:`DeterministicActor` (observation ``[..., obs_dim]`` -> action ``[..., 2]`` in the action
 box: the tanh of the Gaussian mean for SAC/PPO/CPO, the tanh of the output for DDPG, i.e. what
 the actor does under ``ExplorationType.DETERMINISTIC``) with the env config embedded as
-``meta.json``, so ``python -m uavlae.fly`` can rebuild the observation of the same world.
+``meta.json``, so ``python -m uavlae.fly`` can rebuild the observation of the same world. A run
+trained through the safety filter exports its pilot instead (:class:`Pilot`: the actor and the
+filter in one program, with a noise input so that a recipe that flies draws from its policy,
+``trainer.eval_actor=sample``, is reproduced by ``uavlae.fly`` from the same seeded stream).
 Load it anywhere with torch alone: :func:`uavlae.fly.load_actor`, or
 ``torch.export.load(path).module()(observation)``.
 
@@ -23,6 +26,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
+from torchrl.modules import ProbabilisticActor
 
 from uavlae.checkpoint import load_checkpoint
 from uavlae.envs import make_env_config
@@ -31,6 +35,8 @@ from uavlae.envs.world import ObservationLayout, initial_state, nearest_distance
 from uavlae.errors import ConfigError
 from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 from uavlae.files import atomic_write, portable
+from uavlae.policies.draws import squash
+from uavlae.policies.sampling import EVAL_ACTORS
 from uavlae.runlog import package_versions, without_hydra_output
 
 
@@ -108,23 +114,51 @@ PILOT_STATE_KEYS = (
 )
 
 
-class Pilot(nn.Module):
-    """The deployed pilot: ``(state, use_filter) -> action``. It builds the observation from the
-    raw state (the env's own :class:`~uavlae.envs.world.ObservationLayout`), lets the actor act
-    deterministically, and passes the action through the safety filter where ``use_filter`` (a
-    bool tensor) holds: both are computed, so the program has no data-dependent branch."""
+class NoisyActor(nn.Module):
+    """``(obs, noise) -> action``: a tanh-normal actor's draw for a given standard-normal ``noise``
+    (:func:`uavlae.policies.sampling.squash`; zero noise is its mean action), or a deterministic
+    actor's action, which ignores the noise."""
 
-    def __init__(self, actor: DeterministicActor, env_cfg: Any, safety: Any):
+    def __init__(self, learner: Any, action_spec: Any):
+        super().__init__()
+        from uavlae.policies.networks import action_bounds
+
+        box = action_bounds(action_spec)
+        self.act_dim = int(box.space.low.numel())
+        self.stochastic = isinstance(learner.actor, ProbabilisticActor)
+        if self.stochastic:  # the head's TensorDictModule: obs -> (loc, scale)
+            self.net = copy.deepcopy(learner.actor.module[0].module).cpu().eval()
+        else:
+            self.net = deterministic_actor_module(learner, action_spec)
+        self.register_buffer("low", box.space.low.detach().clone().float().cpu())
+        self.register_buffer("high", box.space.high.detach().clone().float().cpu())
+
+    def forward(self, observation: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        if not self.stochastic:
+            return self.net(observation)
+        loc, scale = self.net(observation)
+        return squash(loc, scale, noise, self.low, self.high)
+
+
+class Pilot(nn.Module):
+    """The deployed pilot: ``(state, use_filter, noise) -> action``. It builds the observation from
+    the raw state (the env's own :class:`~uavlae.envs.world.ObservationLayout`), lets the actor act
+    (``noise``, ``[B, act_dim]`` standard normals, draws from its policy; zeros give its mean
+    action: meta ``actor`` says which the recipe flies) and passes the action through the safety
+    filter where ``use_filter`` (a bool tensor) holds: both are computed, so the program has no
+    data-dependent branch."""
+
+    def __init__(self, actor: NoisyActor, env_cfg: Any, safety: Any):
         super().__init__()
         self.actor = actor
         self.safety = safety
         self.env_cfg = env_cfg
         self.layout = ObservationLayout(env_cfg)
 
-    def forward(self, state: dict[str, torch.Tensor], use_filter: torch.Tensor) -> torch.Tensor:
+    def forward(self, state: dict[str, torch.Tensor], use_filter: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         s = dict(state)
         s.update(nearest_distances(s, self.env_cfg))
-        action = self.actor(self.layout.build(s))
+        action = self.actor(self.layout.build(s), noise)
         filtered, _, _ = self.safety.filter_action(s, action)
         return torch.where(use_filter, filtered, action)
 
@@ -132,19 +166,24 @@ class Pilot(nn.Module):
 def export_pilot(learner: Any, action_spec: Any, env_cfg: Any, safety: Any, path: str | Path,
                  meta: dict[str, Any]) -> Path:
     """Export the actor and its safety filter as one :class:`Pilot` program (any batch size)."""
-    module = Pilot(deterministic_actor_module(learner, action_spec), env_cfg, safety).eval()
+    actor = NoisyActor(learner, action_spec).eval()
+    module = Pilot(actor, env_cfg, safety).eval()
     scen = sample_scenarios(env_cfg, 2, torch.Generator().manual_seed(0))
     example = {k: v for k, v in initial_state(scen.to_dict(), env_cfg).items() if k in PILOT_STATE_KEYS}
     batch = torch.export.Dim("batch", min=1)
-    dynamic = {"state": {k: {0: batch} for k in example}, "use_filter": None}
+    dynamic = {"state": {k: {0: batch} for k in example}, "use_filter": None, "noise": {0: batch}}
     with torch.no_grad():
-        program = torch.export.export(module, (example, torch.tensor(True)), dynamic_shapes=dynamic)
-    return _save(program, meta, path)
+        program = torch.export.export(module, (example, torch.tensor(True), torch.zeros(2, actor.act_dim)),
+                                      dynamic_shapes=dynamic)
+    return _save(program, {**meta, "noise_dim": actor.act_dim}, path)
 
 
-def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any = None) -> Path:
+def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any = None,
+                      actor_mode: str | None = None) -> Path:
     """Export a checkpoint's actor: with a safety filter (``safety_cfg``, else the run's own
-    ``safety_filter``; mode not ``off``) as a :class:`Pilot`, else the actor alone."""
+    ``safety_filter``; mode not ``off``) as a :class:`Pilot`, else the actor alone (its mean
+    action). A pilot's meta records how its actor flies (``actor_mode``, else the run's
+    ``trainer.eval_actor``) and the seed of the noise stream ``uavlae.fly`` draws for it."""
     state, file = load_checkpoint(checkpoint)
     saved = OmegaConf.create(state["config"])
     env_cfg = make_env_config(saved.env)
@@ -169,6 +208,14 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
     if safety is None:
         return export_actor(learner, env.action_spec, out, meta)
     meta["safety_filter"] = make_safety_filter_config(safety_cfg).model_dump(mode="json")
+    mode = str(actor_mode or OmegaConf.select(saved, "trainer.eval_actor", default="mean"))
+    if mode not in EVAL_ACTORS:
+        raise ConfigError(f"trainer.eval_actor={mode!r}: use one of {', '.join(EVAL_ACTORS)}")
+    if mode == "sample" and not isinstance(learner.actor, ProbabilisticActor):
+        raise ConfigError(f"trainer.eval_actor=sample draws from a tanh-normal policy; {saved.algo.name}'s actor is "
+                          "deterministic: use trainer.eval_actor=mean")
+    meta["actor"] = mode
+    meta["noise_seed"] = int(saved.trainer.eval_seed)
     if env_cfg.ego_features and env_cfg.reward.progress_metric == "geodesic":
         raise ConfigError("a pilot reads only what the DCU perceives: env.ego_features with "
                          "reward.progress_metric=geodesic reads a planner's distance field (a training-only aid)")
@@ -185,8 +232,10 @@ def main(cfg: DictConfig) -> None:
         if not cfg.checkpoint or not cfg.get("out"):
             raise ConfigError("checkpoint= and out= are both needed; usage: python -m uavlae.export "
                               "checkpoint=RUN_DIR_OR_FILE out=actor.pt2 [safety_filter.mode=deploy]")
-        named = any(o.split("=", 1)[0].lstrip("+~").startswith("safety_filter") for o in HydraConfig.get().overrides.task)
-        print(export_checkpoint(cfg.checkpoint, cfg.out, cfg.safety_filter if named else None))
+        task = [o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task]
+        named = any(k.startswith("safety_filter") for k in task)
+        mode = str(cfg.trainer.eval_actor) if "trainer.eval_actor" in task else None
+        print(export_checkpoint(cfg.checkpoint, cfg.out, cfg.safety_filter if named else None, mode))
 
 
 if __name__ == "__main__":

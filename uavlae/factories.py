@@ -99,6 +99,9 @@ class TrainerConfig(StrictModel):
     sample_eval_set: bool = False  # a missing eval_set file is sampled and saved there (else an error)
     eval_max_steps: int | None = Field(ge=1)
     eval_plots: int = Field(ge=0)
+    # the learner's actor in evaluations and in the exported pilot: its mean action, or a draw from
+    # its tanh-normal policy from a stream seeded with eval_seed (uavlae.policies.sampling)
+    eval_actor: Literal["mean", "sample"] = "mean"
     checkpoint_every_frames: int = Field(ge=0)
     keep_checkpoints: int = Field(ge=1, le=2)
     # also keep checkpoints/best.pt: the networks of the evaluation with the highest

@@ -1,13 +1,14 @@
 """Fly an exported actor or pilot on a scenario with torch alone (no torchrl, no LLM):
 
     python -m uavlae.fly --actor actor.pt2 --scenario scenario.json [--index 0] [--png out.png]
-    python -m uavlae.fly --actor pilot.pt2 --scenario set.json --all [--no-filter]
+    python -m uavlae.fly --actor pilot.pt2 --scenario set.json --all [--no-filter] [--act mean|sample]
 
 An actor reads the observation (built here from the embedded env config); a pilot
 (``uavlae.export`` of a run with a safety filter) reads the raw state the DCU perceives and
-flies through its filter (``--no-filter``: its actor alone). ``--all`` flies every scenario of
-the file as one batch with the evaluator's OU random stream, so it reproduces the evaluator's
-pooled metrics.
+flies through its filter (``--no-filter``: its actor alone), its actor acting as its recipe says
+(its mean action, or a draw from its policy from the evaluator's noise stream; ``--act``).
+``--all`` flies every scenario of the file as one batch with the evaluator's OU random stream
+(and noise stream), so it reproduces the evaluator's pooled metrics.
 
 The scenario file is one scenario object or a list of them (``uavlae.envs.scenario`` JSON, as
 the evaluation sets are saved). The world is the pure-torch ``uavlae.envs.world`` step with the
@@ -99,13 +100,32 @@ def perceived(state: dict[str, torch.Tensor], env_cfg: Any) -> dict[str, torch.T
     return s
 
 
-def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True) -> Any:
+def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True, act: str | None = None) -> Any:
     """``state -> action`` for an exported file: an actor reads the observation the env would
-    build, a pilot the perceived raw state (its filter on unless ``use_filter`` is False)."""
+    build, a pilot the perceived raw state (its filter on unless ``use_filter`` is False). A pilot's
+    actor acts as ``act`` says (default: as its recipe, meta ``actor``): ``mean``, or ``sample``, a
+    draw from its policy with the noise from the evaluator's stream (meta ``noise_seed``),
+    started anew by each call of this function."""
+    from uavlae.policies.draws import draw, noise_stream
+
     world, _ = _world_modules()
     if meta.get("kind", "actor") == "pilot":
         flag = torch.tensor(bool(use_filter))
-        return lambda state: module(perceived(state, env_cfg), flag)
+        if "noise_dim" not in meta:  # a pilot exported before the noise input: its mean action
+            if act == "sample":
+                raise ValueError("--act sample: this pilot was exported without a noise input (its mean action only)")
+            return lambda state: module(perceived(state, env_cfg), flag)
+        dim, mode = int(meta["noise_dim"]), act or meta.get("actor", "mean")
+        stream = noise_stream(int(meta.get("noise_seed", 0)))
+
+        def pilot(state: dict[str, torch.Tensor]) -> torch.Tensor:
+            rows = state["position"].shape[0]
+            noise = draw(stream, rows, dim) if mode == "sample" else torch.zeros(rows, dim)
+            return module(perceived(state, env_cfg), flag, noise)
+
+        return pilot
+    if act == "sample":
+        raise ValueError("--act sample: an exported actor flies its mean action; a pilot (exported with its filter) can sample")
     layout = world.ObservationLayout(env_cfg)
     return lambda state: module(layout.build(state))
 
@@ -204,6 +224,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--all", action="store_true",
                    help="fly every scenario of the list as the evaluator does; the last line is the pooled metrics as JSON")
     p.add_argument("--no-filter", action="store_true", help="a pilot's actor alone, without its safety filter")
+    p.add_argument("--act", choices=("mean", "sample"), default=None,
+                   help="a pilot's actor: its mean action, or a draw from its policy from the evaluator's noise stream "
+                        "(default: as its recipe flies, meta 'actor')")
     p.add_argument("--seed", type=int, default=None,
                    help="seeds the other UAVs' random motion (default: the run's evaluation seed with --all, else 0)")
     p.add_argument("--png", default=None, help="draw the flight to this PNG (needs matplotlib)")
@@ -214,7 +237,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     env_cfg = config.make_env_config(meta["env"])
     if args.no_filter and meta.get("kind", "actor") != "pilot":
         raise SystemExit(f"--no-filter: {args.actor} is an actor without a safety filter")
-    policy = policy_of(actor, meta, env_cfg, use_filter=not args.no_filter)
+    try:
+        policy = policy_of(actor, meta, env_cfg, use_filter=not args.no_filter, act=args.act)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     data = json.loads(Path(args.scenario).read_text())
     if args.all:
         scenarios = data if isinstance(data, list) else [data]

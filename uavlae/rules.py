@@ -54,6 +54,8 @@ def world_problems(env: EnvConfig) -> list[str]:
 COST_LEARNERS = frozenset({"sac_lag", "cpo"})
 # the learners whose update reads the acting policy's log-probability of the stored action
 ON_POLICY_LEARNERS = frozenset({"ppo", "cpo", "wang", "theile"})
+# the learners whose actor is deterministic (no policy to draw from)
+DETERMINISTIC_LEARNERS = frozenset({"ddpg"})
 
 
 def run_problems(cfg: Any, env: EnvConfig) -> list[str]:
@@ -81,4 +83,9 @@ def run_problems(cfg: Any, env: EnvConfig) -> list[str]:
         if float(sf.cost) > 0 and algo is not None and algo.name not in COST_LEARNERS:
             out.append(f"safety_filter.cost={float(sf.cost):g} with algo={algo.name}: that learner reads no cost, so "
                        f"the filter's cost would change nothing; allowed with algo in {sorted(COST_LEARNERS)}")
+    tr, algo = cfg.get("trainer"), cfg.get("algo")
+    if (tr is not None and tr.get("eval_actor", "mean") == "sample" and algo is not None
+            and algo.name in DETERMINISTIC_LEARNERS):
+        out.append(f"trainer.eval_actor=sample with algo={algo.name}: its actor is deterministic, there is no policy "
+                   "to draw from; use trainer.eval_actor=mean")
     return out

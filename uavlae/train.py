@@ -78,6 +78,7 @@ from uavlae.files import atomic_write, finite, train_eval_dir
 from uavlae.lifecycle import (RESUMABLE_KEYS, GracefulStop, Plan, RunFolder, RunStopped, StopRequested, flatten_keys,
                               lock_name, plan)
 from uavlae.policies.safety import FilteredPolicy, SafetyFilter
+from uavlae.policies.sampling import eval_actor
 from uavlae.preflight import check_llm, start_llm
 from uavlae.progress import progress_for
 from uavlae.rules import run_problems
@@ -330,14 +331,16 @@ class Training:
         return self.counters.get("last_eval_frames") != self.frames and self.frames >= self.counters["next_eval"]
 
     def _fly_evaluation(self, out: Path, title: str) -> None:
+        # the actor as it is deployed (trainer.eval_actor): its mean action or a draw from its policy
+        actor = eval_actor(self.learner.actor, str(self.tr.eval_actor), int(self.tr.eval_seed))
         if self.safety is None:
-            flight = self.evaluation.fly(self.learner.actor, out, title=title)
+            flight = self.evaluation.fly(actor, out, title=title)
             self.last_eval = flight.metrics
         else:
-            pilot = FilteredPolicy(self.learner.actor, self.safety)
+            pilot = FilteredPolicy(actor, self.safety)
             flight = self.evaluation.fly(pilot, out, title=f"{title}, filtered")
             self.last_eval = {**flight.metrics, **flight.stats}
-            alone = self.evaluation.fly(self.learner.actor, out / "actor_alone", title=f"{title}, actor alone")
+            alone = self.evaluation.fly(actor, out / "actor_alone", title=f"{title}, actor alone")
             self.last_eval.update(prefixed("actor", alone.metrics))
 
     def checkpoint(self, final: bool = False) -> Path:
