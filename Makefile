@@ -540,7 +540,7 @@ RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=deploy env.reward.p
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-verdict pilot-heldout pilot-export pilot-references pilot-records pilot-sampling \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
@@ -608,6 +608,17 @@ pilot-references: $(STAMP)
 pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
 # where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
+# every finished screening run's end flown by draws from its policy (trainer.eval_actor=sample) on the
+# selection set, through its filter and alone; the same networks' mean-action rows are the run's own
+# last evaluation, so the report pairs the two
+PILOT_SELECTION = results/eval_set_32.json
+pilot-sampling: $(STAMP)
+	for d in $(PILOT_EXP_ROOT)/pilot/screen/*/seed*; do [ -f $$d/final_metrics.json ] && [ -f $$d/checkpoints/last.pt ] || continue; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(PILOT_SELECTION) trainer.eval_actor=sample \
+			experiment.reuse=true experiment.eval_dir=$$d/evaluate/selection_sample trainer.eval_plots=0 || exit 1; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(PILOT_SELECTION) trainer.eval_actor=sample \
+			safety_filter.mode=off experiment.reuse=true experiment.eval_dir=$$d/evaluate/selection_alone_sample \
+			trainer.eval_plots=0 || exit 1; done
 pilot-stalls: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
 pilot-report: $(STAMP)

@@ -55,7 +55,8 @@ def test_report_from_records_alone(tmp_path):
         for seed in (100, 101):
             runs.append({"stage": "screen", "rung": rung, "seed": seed, "frames": 1000, "wall_s": 1200.0,
                          "train_intervention": 0.25, "eval_intervention": 0.125})
-            for ev, got in (("alone", alone), ("pilot", pilot), ("heuristic", (1, 1)), ("random", (0, 0))):
+            drawn = (("pilot_sample", (1, 0)),) if rung == "plain" else ()
+            for ev, got in (("alone", alone), ("pilot", pilot), ("heuristic", (1, 1)), ("random", (0, 0)), *drawn):
                 for n in (0, 1):
                     crash = ev == "alone" and got[n] == 0
                     eps.append({"stage": "screen", "rung": rung, "seed": seed, "evaluation": ev, "set": "selection",
@@ -85,6 +86,14 @@ def test_report_from_records_alone(tmp_path):
     assert "| heuristic | 1.000 [1.000, 1.000] |" in text and "| random | 0.000 [0.000, 0.000] |" in text
     with pytest.raises(KeyError):
         rows[("ego", "100 101", "held-out")]
+    # plain's networks flown by draws collect and land in scenario 0 only: DCR 0.5, SLR 0.5, and
+    # against their mean action (both everywhere) ΔDCR = ΔSLR = -0.5, resampled -1, -0.5 or 0
+    assert "| 0.500 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.500 [0.000, 1.000] |" in rows[
+        ("plain", "100 101", "actor (a draw) + filter")]
+    drawn = rows[("plain", "100 101", "through the filter")]
+    assert drawn.startswith("| plain | 100 101 | through the filter | -0.500 [-1.000, 0.000] | 0.000 [0.000, 0.000] | "
+                            "-0.500 [-1.000, 0.000] |")
+    assert ("ego", "100 101", "through the filter") not in rows
 
 
 def test_model_card_from_records_alone(tmp_path):

@@ -54,6 +54,13 @@ CURVE_SCALARS = tuple((f"eval/{m}", m) for m in METRICS) + tuple((f"eval/actor/{
     ("eval/train_wall_s", "train_wall_s"), ("eval/safety/intervention_rate", "eval_intervention"),
     ("safety/intervention_rate", "train_intervention"))
 HELDOUT = {"heldout_pilot": "pilot", "heldout_alone": "alone"}  # <run>/evaluate/<folder> -> evaluation
+# the same networks flown by draws from their policy (trainer.eval_actor=sample; make pilot-sampling):
+# <run>/evaluate/<folder> -> (evaluation, set)
+SAMPLED = {"selection_sample": ("pilot_sample", "selection"), "selection_alone_sample": ("alone_sample", "selection"),
+           "heldout_pilot_sample": ("pilot_sample", "heldout"), "heldout_alone_sample": ("alone_sample", "heldout")}
+# the rows of a stage's table: evaluation -> what flew
+FLOWN = {"pilot": "actor + filter", "pilot_sample": "actor (a draw) + filter", "alone": "actor alone",
+         "alone_sample": "actor alone (a draw)"}
 
 
 def _filtered(cfg: dict[str, Any]) -> bool:
@@ -90,6 +97,8 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
         sources[("pilot", "selection")] = out
     for folder, evaluation in HELDOUT.items():
         sources[(evaluation, "heldout")] = d / "evaluate" / folder
+    for folder, cell in SAMPLED.items():
+        sources[cell] = d / "evaluate" / folder
     episodes = []
     for (evaluation, which), folder in sources.items():
         for i, row in enumerate(read_rows(folder / "episodes.csv")):
@@ -362,14 +371,14 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
         wall = sum(float(r["wall_s"] or 0) for r in rr) / max(len(rr), 1) / 60
         share = " / ".join(f"{float(v):.3f}" if v not in (None, "") else "–"
                            for v in (rr[0].get("train_intervention"), rr[0].get("eval_intervention")))
-        for evaluation in ("pilot", "alone"):
+        for evaluation in FLOWN:
             episodes = cells.get((stage, rung, evaluation, which))
             if not episodes:
                 continue
             g = grid_from_rows(episodes)
             pilot = evaluation == "pilot"
             rows.append({"rung": rung, "seeds": " ".join(map(str, g.seeds)),
-                         "flown": "actor + filter" if pilot else "actor alone",
+                         "flown": FLOWN[evaluation],
                          **{m: fmt_interval(*interval(g, m)) for m in METRICS},
                          "filter acts (train / eval)": share if pilot else "", "wall (min)": f"{wall:.0f}",
                          ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else "",
@@ -411,6 +420,26 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
                          "flown": "actor + filter" if evaluation == "pilot" else "actor alone",
                          **{f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}})
     return markdown_table(rows, ["rung vs the one it changes", "flown", *(f"Δ{m}" for m in METRICS)])
+
+
+def _draws(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> list[str]:
+    """Paired differences of each rung's networks flown by draws from their policy against the
+    same networks flown by their mean action (the same seeds and scenarios)."""
+    rows = []
+    for rung in _order(runs, stage):
+        for drawn, mean in (("pilot_sample", "pilot"), ("alone_sample", "alone")):
+            a, b = cells.get((stage, rung, drawn, which)), cells.get((stage, rung, mean, which))
+            if not a or not b:
+                continue
+            ga, gb = grid_from_rows(a), grid_from_rows(b)
+            both = [s for s in ga.seeds if s in gb.seeds]
+            if not both:
+                continue
+            ga, gb = ga.take(both), gb.take(both)
+            rows.append({"rung": rung, "seeds": " ".join(map(str, both)),
+                         "draw − mean": "through the filter" if mean == "pilot" else "actor alone",
+                         **{f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}})
+    return markdown_table(rows, ["rung", "seeds", "draw − mean", *(f"Δ{m}" for m in METRICS)])
 
 
 def build(records: Path) -> Path:
@@ -463,6 +492,12 @@ def build(records: Path) -> Path:
             moved = _ladder(stage, runs, cells, which)
             if len(moved) > 2:  # more than the header: the stage has a rung to compare with
                 lines += [f"### {stage}: what each ingredient moved ({which})", "", *moved, ""]
+            drawn = _draws(stage, runs, cells, which)
+            if len(drawn) > 2:
+                lines += [f"### {stage}: a draw from the policy against its mean action ({which})", "",
+                          "The same networks (each run's end) flown by draws from their tanh-normal policy "
+                          "(`trainer.eval_actor=sample`, `make pilot-sampling`) minus flown by their mean action, "
+                          "paired on seeds and scenarios:", "", *drawn, ""]
     target = records / "report.md"
     write_text(target, "\n".join(lines) + "\n")
     return target
