@@ -584,30 +584,31 @@ pilot-screen-learner: $(STAMP)
 # the verdict: the chosen recipe (+exp=pilot, fixed before these runs) on the verdict seeds at the
 # paper's budget, each flown on the held-out set through its filter and alone; seed 0's pilot exported
 PILOT_VERDICT_FRAMES ?= 2500000
+# the recipe a verdict runs (uavlae/conf/exp/<it>.yaml; its runs' method and folder take its name)
+PILOT_RECIPE ?= pilot
 HELDOUT = results/pilot/heldout_set_256.json
 comma := ,
 pilot-verdict: $(STAMP)
-	$(PILOT) experiment.point=verdict +exp=pilot seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
-		trainer.replay_capacity=$(PILOT_VERDICT_FRAMES) experiment.method=pilot
+	$(PILOT) experiment.point=verdict +exp=$(PILOT_RECIPE) seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
+		trainer.replay_capacity=$(PILOT_VERDICT_FRAMES) experiment.method=$(PILOT_RECIPE)
 	$(MAKE) pilot-heldout pilot-export
 # the pilot of a verdict run: its best selection-set evaluation when it kept one (trainer.keep_best),
 # else its end; the held-out set judges it
 PILOT_CKPT = c=$$d/checkpoints/best.pt; [ -f $$c ] || c=$$d
 pilot-heldout: $(STAMP)
-	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed$$s; $(PILOT_CKPT); \
+	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed$$s; $(PILOT_CKPT); \
 		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
 			experiment.eval_dir=$$d/evaluate/heldout_pilot trainer.eval_plots=0 || exit 1; \
 		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
 			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/heldout_alone trainer.eval_plots=0 || exit 1; done
 pilot-export: $(STAMP)
-	d=$(PILOT_EXP_ROOT)/pilot/verdict/pilot/seed0; $(PILOT_CKPT); \
+	d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed0; $(PILOT_CKPT); \
 		$(BIN)/python -m uavlae.export checkpoint=$$c out=results/pilot/pilot.pt2
 	$(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --all | tail -1
 pilot-references: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot
 pilot-records: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot records $(PILOT_EXP_ROOT) --out results/pilot
-# where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
 # every finished screening run's end flown by draws from its policy (trainer.eval_actor=sample) on the
 # selection set, through its filter and alone; the same networks' mean-action rows are the run's own
 # last evaluation, so the report pairs the two
@@ -619,13 +620,15 @@ pilot-sampling: $(STAMP)
 		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(PILOT_SELECTION) trainer.eval_actor=sample \
 			safety_filter.mode=off experiment.reuse=true experiment.eval_dir=$$d/evaluate/selection_alone_sample \
 			trainer.eval_plots=0 || exit 1; done
+# where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
 pilot-stalls: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
 pilot-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
 # the committed pilot's model card (results/pilot/README.md) from the records and +exp=pilot's file
 pilot-card: $(STAMP)
-	$(BIN)/python -m uavlae.experiments.pilot card results/pilot
+	$(BIN)/python -m uavlae.experiments.pilot card results/pilot --recipe uavlae/conf/exp/$(PILOT_RECIPE).yaml \
+		--rung $(PILOT_RECIPE)
 # the held-out evaluation set of the verdict: 256 scenarios of SPEC's distribution from a seed used
 # nowhere else (90210); committed, so this only rewrites the same file
 .PHONY: pilot-heldout-set

@@ -37,9 +37,9 @@ def test_exp_composes_and_validates(hydra_ctx, exp):
     else:
         assert cfg.controller == "learner"
     # the paper's greedy heuristic wherever one acts, the planner only under its own names
-    assert cfg.heuristic_kind == ("planner" if exp.endswith("_planner") or exp == "pilot" else "greedy")
+    assert cfg.heuristic_kind == ("planner" if exp.endswith("_planner") or exp.startswith("pilot") else "greedy")
     expected_advisor = {
-        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "llm": "llm",
+        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "pilot_drawn": "heuristic", "llm": "llm",
         "sac_hover": "hover", "sac_random_advice": "random",
     }
     assert cfg.advisor.kind == expected_advisor.get(exp, "none")
@@ -157,7 +157,7 @@ def test_every_pilot_rung_composes_and_keeps_the_rules(hydra_ctx):
     from pathlib import Path
 
     from uavlae.envs import make_env_config
-    from uavlae.experiments.pilot import LADDER
+    from uavlae.experiments.pilot import LADDER, RECIPES
     from uavlae.rules import run_problems
 
     rungs = _makefile_rungs()
@@ -168,4 +168,10 @@ def test_every_pilot_rung_composes_and_keeps_the_rules(hydra_ctx):
         assert run_problems(cfg, make_env_config(cfg.env)) == [], name
     assert rungs["RUNG_WISH_TEACH_ALL"][-1] == "safety_filter.learn_from=proposed"
     makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
-    assert all(f"experiment.method={rung}" in makefile for rung in LADDER)
+    assert all(f"experiment.method={rung}" in makefile for rung in LADDER if rung not in RECIPES)
+    # the verdict's recipes: a config each, run under their own name
+    assert "+exp=$(PILOT_RECIPE)" in makefile and "experiment.method=$(PILOT_RECIPE)" in makefile
+    for recipe in RECIPES:
+        cfg = _compose("+sweep=pilot", "+profile=quick", "env=default", f"+exp={recipe}")
+        validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
+        assert run_problems(cfg, make_env_config(cfg.env)) == [] and cfg.name == recipe

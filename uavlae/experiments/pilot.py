@@ -311,6 +311,8 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
     return cells
 
 
+# the recipes a verdict runs (uavlae/conf/exp/<name>.yaml; make pilot-verdict PILOT_RECIPE=<name>)
+RECIPES = ("pilot", "pilot_drawn")
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
           "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
@@ -318,7 +320,7 @@ LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sa
           "sac_ego_filter_shaped_wish_teach_all", "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_strong",
           "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide",
-          "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped", "pilot")
+          "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped", *RECIPES)
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -675,6 +677,7 @@ def main(argv: list[str] | None = None) -> None:
     c = sub.add_parser("card", help="CSV records + the recipe -> the committed pilot's model card (README.md)")
     c.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
     c.add_argument("--recipe", type=Path, default=Path("uavlae/conf/exp/pilot.yaml"))
+    c.add_argument("--rung", default="pilot", help="the verdict runs' method (make pilot-verdict PILOT_RECIPE=...)")
     st = sub.add_parser("stalls", help="where an exported pilot's unlanded episodes end (-> OUT/stalls.json)")
     st.add_argument("--actor", type=Path, default=Path("results/pilot/pilot.pt2"))
     st.add_argument("--scenario", type=Path, default=SETS["heldout"])
@@ -685,7 +688,7 @@ def main(argv: list[str] | None = None) -> None:
         write_text(args.out / "stalls.json", json.dumps(found, indent=1) + "\n")
         print(json.dumps(found))
     elif args.cmd == "card":
-        print(card(args.records, args.recipe))
+        print(card(args.records, args.recipe, rung=args.rung))
     elif args.cmd == "records":
         print(json.dumps(write_records(args.runs, args.out)))
     elif args.cmd == "references":
