@@ -402,6 +402,19 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "saclag_ego_shaped": "sac_ego_filter_shaped"}
 
 
+def _paired(a: list[dict[str, str]] | None, b: list[dict[str, str]] | None) -> tuple[list[int], dict[str, str]] | None:
+    """The seeds two cells share and each metric's difference a − b paired on them (formatted,
+    keyed ``Δ<metric>``); None when either cell is missing or they share no seed."""
+    if not a or not b:
+        return None
+    ga, gb = grid_from_rows(a), grid_from_rows(b)
+    both = [s for s in ga.seeds if s in gb.seeds]
+    if not both:
+        return None
+    ga, gb = ga.take(both), gb.take(both)
+    return both, {f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}
+
+
 def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> list[str]:
     """Paired differences of each rung against the rung it changes (:data:`PARENT`, else the
     one above it), for the pilot and the actor alone."""
@@ -410,17 +423,10 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
     for previous, rung in zip(rungs, rungs[1:]):
         above = PARENT[rung] if PARENT.get(rung) in rungs else previous
         for evaluation in ("pilot", "alone"):
-            a, b = cells.get((stage, rung, evaluation, which)), cells.get((stage, above, evaluation, which))
-            if not a or not b:
-                continue
-            ga, gb = grid_from_rows(a), grid_from_rows(b)
-            both = [s for s in ga.seeds if s in gb.seeds]
-            if not both:
-                continue
-            ga, gb = ga.take(both), gb.take(both)
-            rows.append({"rung vs the one it changes": f"{rung} vs {above}",
-                         "flown": "actor + filter" if evaluation == "pilot" else "actor alone",
-                         **{f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}})
+            deltas = _paired(cells.get((stage, rung, evaluation, which)), cells.get((stage, above, evaluation, which)))
+            if deltas is not None:
+                rows.append({"rung vs the one it changes": f"{rung} vs {above}",
+                             "flown": "actor + filter" if evaluation == "pilot" else "actor alone", **deltas[1]})
     return markdown_table(rows, ["rung vs the one it changes", "flown", *(f"Δ{m}" for m in METRICS)])
 
 
@@ -430,17 +436,10 @@ def _draws(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> l
     rows = []
     for rung in _order(runs, stage):
         for drawn, mean in (("pilot_sample", "pilot"), ("alone_sample", "alone")):
-            a, b = cells.get((stage, rung, drawn, which)), cells.get((stage, rung, mean, which))
-            if not a or not b:
-                continue
-            ga, gb = grid_from_rows(a), grid_from_rows(b)
-            both = [s for s in ga.seeds if s in gb.seeds]
-            if not both:
-                continue
-            ga, gb = ga.take(both), gb.take(both)
-            rows.append({"rung": rung, "seeds": " ".join(map(str, both)),
-                         "draw − mean": "through the filter" if mean == "pilot" else "actor alone",
-                         **{f"Δ{m}": fmt_interval(*difference(ga, gb, m)) for m in METRICS}})
+            deltas = _paired(cells.get((stage, rung, drawn, which)), cells.get((stage, rung, mean, which)))
+            if deltas is not None:
+                rows.append({"rung": rung, "seeds": " ".join(map(str, deltas[0])),
+                             "draw − mean": "through the filter" if mean == "pilot" else "actor alone", **deltas[1]})
     return markdown_table(rows, ["rung", "seeds", "draw − mean", *(f"Δ{m}" for m in METRICS)])
 
 
