@@ -64,3 +64,24 @@ def test_an_actor_without_a_policy_is_refused():
         eval_actor(ddpg, "sample", seed=0)
     with pytest.raises(ConfigError, match="use one of mean, sample"):
         eval_actor(_hand_set_actor(), "noisy", seed=0)
+
+
+def test_exporting_a_deterministic_actor_to_fly_by_draws_is_refused_and_writes_nothing(tmp_path):
+    """uavlae.export applies the evaluator's check: a DDPG checkpoint exported as a pilot that
+    acts by draws is refused with the evaluator's message, and no pilot file is left behind."""
+    from omegaconf import OmegaConf
+
+    from tests.test_train import _cfg
+    from uavlae.checkpoint import save_checkpoint
+    from uavlae.envs import make_env_config
+    from uavlae.export import export_checkpoint
+    from uavlae.factories import make_env, make_learner
+
+    cfg = _cfg("+exp=ddpg", "safety_filter.mode=deploy")
+    learner = make_learner(cfg.algo, make_env(make_env_config(cfg.env), 1, seed=0))
+    save_checkpoint({"config": OmegaConf.to_container(cfg, resolve=True), "learner": learner.state_dict(),
+                     "counters": {"frames": 0}}, tmp_path / "run")
+    out = tmp_path / "pilot.pt2"
+    with pytest.raises(ConfigError, match=r"\(deterministic\): use trainer.eval_actor=mean"):
+        export_checkpoint(tmp_path / "run", out, actor_mode="sample")
+    assert not out.exists()

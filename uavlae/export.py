@@ -36,7 +36,7 @@ from uavlae.errors import ConfigError
 from uavlae.factories import make_env, make_learner, make_safety_filter, make_safety_filter_config
 from uavlae.files import atomic_write, portable
 from uavlae.policies.draws import squash
-from uavlae.policies.sampling import EVAL_ACTORS
+from uavlae.policies.sampling import eval_actor
 from uavlae.runlog import package_versions, without_hydra_output
 
 
@@ -116,7 +116,7 @@ PILOT_STATE_KEYS = (
 
 class NoisyActor(nn.Module):
     """``(obs, noise) -> action``: a tanh-normal actor's draw for a given standard-normal ``noise``
-    (:func:`uavlae.policies.sampling.squash`; zero noise is its mean action), or a deterministic
+    (:func:`uavlae.policies.draws.squash`; zero noise is its mean action), or a deterministic
     actor's action, which ignores the noise."""
 
     def __init__(self, learner: Any, action_spec: Any):
@@ -209,11 +209,9 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, safety_cfg: Any =
         return export_actor(learner, env.action_spec, out, meta)
     meta["safety_filter"] = make_safety_filter_config(safety_cfg).model_dump(mode="json")
     mode = str(actor_mode or OmegaConf.select(saved, "trainer.eval_actor", default="mean"))
-    if mode not in EVAL_ACTORS:
-        raise ConfigError(f"trainer.eval_actor={mode!r}: use one of {', '.join(EVAL_ACTORS)}")
-    if mode == "sample" and not isinstance(learner.actor, ProbabilisticActor):
-        raise ConfigError(f"trainer.eval_actor=sample draws from a tanh-normal policy; {saved.algo.name}'s actor is "
-                          "deterministic: use trainer.eval_actor=mean")
+    # the evaluator's own check: an unknown mode, or draws from a deterministic actor, are refused
+    # in the words a training run would use
+    eval_actor(learner.actor, mode, int(saved.trainer.eval_seed))
     meta["actor"] = mode
     meta["noise_seed"] = int(saved.trainer.eval_seed)
     if env_cfg.ego_features and env_cfg.reward.progress_metric == "geodesic":
