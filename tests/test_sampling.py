@@ -85,3 +85,25 @@ def test_exporting_a_deterministic_actor_to_fly_by_draws_is_refused_and_writes_n
     with pytest.raises(ConfigError, match=r"\(deterministic\): use trainer.eval_actor=mean"):
         export_checkpoint(tmp_path / "run", out, actor_mode="sample")
     assert not out.exists()
+
+
+def test_the_evaluation_with_an_advisor_flies_the_actor_as_the_evaluation_without():
+    """OverridePolicy.advised(actor=...): the rows the advisor leaves to the actor act by the
+    evaluation's own actor. Two rows, 2 m and 50 m from a building, d_th 20 m: row 0 is the
+    advisor's (1, 1); row 1 is the actor's, by seed 7's draw (tanh(0.549306 + 0.946822),
+    tanh(-1.114344)) = (0.904446, -0.805593), or without actor= its mean (0.5, 0)."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from tests.test_advice import FixedAdvisor, _rows
+    from uavlae.policies.override import OverridePolicy
+
+    actor = _hand_set_actor()
+    pol = OverridePolicy(actor, FixedAdvisor([1.0, 1.0]), mode="proximity", d_th=20.0)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        with pol.advised(actor=eval_actor(actor, "sample", seed=7)):
+            drawn = pol(_rows([2.0, 50.0]))["action"]
+        with pol.advised():
+            mean = pol(_rows([2.0, 50.0]))["action"]
+    torch.testing.assert_close(drawn, torch.tensor([[1.0, 1.0], [0.904446, -0.805593]]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(mean, torch.tensor([[1.0, 1.0], [0.5, 0.0]]), atol=1e-5, rtol=0)
+    assert pol._eval_actor is None and "_eval_actor" not in dict(pol.named_children())

@@ -535,3 +535,14 @@ def test_teacher_labels_reach_the_replay_buffer(tmp_path):
     assert int(rows["advice_ok"].sum()) == 256
     assert float(rows["advice"].abs().max()) <= 1.0
     assert 0 < int((rows["action_source"] == 2).sum()) < 128  # the planner acted on a few early rows only
+
+
+def test_the_evaluation_with_the_advisor_flies_the_actor_by_draws_as_the_evaluation_does(tmp_path):
+    """trainer.eval_actor=sample with an advisor that never acts (proximity, d_th = 0 m: no
+    distance is below it): the actor with its advisor flies the evaluation exactly as the actor
+    alone does, draws and all, so the two rows differ by the advisor alone."""
+    final = _run("sac_heuristic", tmp_path / "run", "advisor.d_th=0", "trainer.eval_actor=sample",
+                 "trainer.baselines=false")
+    assert final["advised/override/triggered"] == 0
+    for k in ("DCR", "CR", "SLR", "RVR", "ECR"):
+        assert final[f"advised/{k}"] == final[f"eval/{k}"], k

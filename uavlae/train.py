@@ -497,12 +497,15 @@ def _deterministic_counts(totals: dict[str, Any]) -> dict[str, Any]:
 
 def _advised_evaluation(t: Training) -> dict[str, float]:
     """The actor *with* its advisor on the same evaluation set as the actor alone: the
-    override at its full trigger (no phase-out), the actor deterministic, at most
+    override at its full trigger (no phase-out), the actor acting as it is evaluated, at most
     ``trainer.eval_advisor_max_calls`` rows asked. Beside ``eval/``, this tells what the actor
     owes to its advisor. A filtered run flies it through its filter, as its pilot, so the two
     compare. Training state is untouched (``OverridePolicy.advised``)."""
     flyer = t.policy if t.safety is None else FilteredPolicy(t.policy, t.safety)
-    with t.policy.advised(max_calls=t.tr.eval_advisor_max_calls):
+    # the actor acts as in the evaluation without the advisor (trainer.eval_actor), from the
+    # start of the same noise stream, so the two rows differ by the advisor alone
+    actor = eval_actor(t.learner.actor, str(t.tr.eval_actor), int(t.tr.eval_seed))
+    with t.policy.advised(max_calls=t.tr.eval_advisor_max_calls, actor=None if actor is t.learner.actor else actor):
         flight = t.evaluation.fly(flyer, t.run_dir / "eval" / "with_advisor", title=f"{t.cfg.name} with its advisor")
     # who answered there: the LLM through its student answers this evaluation too (from the cache
     # where it asked the same before), so its share here is the evaluation's own cost

@@ -285,6 +285,7 @@ class OverridePolicy(TensorDictModuleBase):
         # evaluation clears a row once its episode has ended, so it is never asked again
         self.row_mask: Tensor | None = None
         self._active_actor: Any = None  # set by using_actor() (random warm-up frames)
+        self._eval_actor: Any = None  # set by advised(actor=...): how the evaluated actor acts
         self._full_trigger = False  # set by advised(): the paper's trigger, no phase-out
         self.generator = torch.Generator()
         self.generator.manual_seed(self.seed)
@@ -314,22 +315,26 @@ class OverridePolicy(TensorDictModuleBase):
             self.deterministic = prev
 
     @contextlib.contextmanager
-    def advised(self, max_calls: int | None = None) -> Iterator["OverridePolicy"]:
+    def advised(self, max_calls: int | None = None, actor: Any = None) -> Iterator["OverridePolicy"]:
         """Evaluation of the actor *with* its advisor: the override on at its full trigger (no
         phase-out), at most ``max_calls`` rows asked (None: no budget), the actor acting
-        deterministically under the evaluator's exploration type. What it counts is
-        :meth:`snapshot`'s inside the block; on leaving, the training state (counters, budget,
-        held answers, the advisor's memory and generators) is put back as it was, so training
-        continues exactly."""
+        deterministically under the evaluator's exploration type, or as ``actor`` acts (the
+        evaluation's own, e.g. a :class:`~uavlae.policies.sampling.SampledActor`, so the rows
+        with and without the advisor fly the actor alike). What it counts is :meth:`snapshot`'s
+        inside the block; on leaving, the training state (counters, budget, held answers, the
+        advisor's memory and generators) is put back as it was, so training continues exactly."""
         saved = self.get_extra_state()
         saved_max, prev_det = self.max_calls, self.deterministic
         self.deterministic, self._full_trigger = False, True
         self.max_calls, self.calls_used, self.hold = max_calls, 0, None
+        # a plain attribute, not a submodule: it is the evaluation's, not part of this policy's state
+        object.__setattr__(self, "_eval_actor", actor)
         self.reset_counters()
         try:
             yield self
         finally:
             self.max_calls, self.deterministic, self._full_trigger = saved_max, prev_det, False
+            object.__setattr__(self, "_eval_actor", None)
             self.set_extra_state(saved)
 
     @contextlib.contextmanager
@@ -372,7 +377,8 @@ class OverridePolicy(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ acting
     def _act(self, td: TensorDictBase) -> TensorDictBase:
-        actor = self._active_actor if self._active_actor is not None else self.actor
+        actor = self._active_actor if self._active_actor is not None else (
+            self._eval_actor if self._eval_actor is not None else self.actor)
         if self.deterministic:
             with set_exploration_type(ExplorationType.DETERMINISTIC):
                 out = actor(td)
