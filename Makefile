@@ -587,6 +587,9 @@ PILOT_VERDICT_FRAMES ?= 2500000
 # the recipe a verdict runs (uavlae/conf/exp/<it>.yaml; its runs' method and folder take its name)
 PILOT_RECIPE ?= pilot
 HELDOUT = results/pilot/heldout_set_256.json
+# a second judging set, drawn after the verdict's recipe was fixed (the held-out set had been flown
+# with tuning-seed checkpoints while recipes were chosen); flown by nothing before the verdict runs
+CONFIRM = results/pilot/confirm_set_256.json
 comma := ,
 pilot-verdict: $(STAMP)
 	$(PILOT) experiment.point=verdict +exp=$(PILOT_RECIPE) seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
@@ -597,10 +600,11 @@ pilot-verdict: $(STAMP)
 PILOT_CKPT = c=$$d/checkpoints/best.pt; [ -f $$c ] || c=$$d
 pilot-heldout: $(STAMP)
 	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed$$s; $(PILOT_CKPT); \
-		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
-			experiment.eval_dir=$$d/evaluate/heldout_pilot trainer.eval_plots=0 || exit 1; \
-		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$(HELDOUT) experiment.reuse=true \
-			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/heldout_alone trainer.eval_plots=0 || exit 1; done
+		for set in heldout:$(HELDOUT) confirm:$(CONFIRM); do n=$${set%%:*}; f=$${set#*:}; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$$f experiment.reuse=true \
+			experiment.eval_dir=$$d/evaluate/$${n}_pilot trainer.eval_plots=0 || exit 1; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$c trainer.eval_set=$$f experiment.reuse=true \
+			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/$${n}_alone trainer.eval_plots=0 || exit 1; done; done
 pilot-export: $(STAMP)
 	d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed0; $(PILOT_CKPT); \
 		$(BIN)/python -m uavlae.export checkpoint=$$c out=results/pilot/pilot.pt2
@@ -629,10 +633,11 @@ pilot-report: $(STAMP)
 pilot-card: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot card results/pilot --recipe uavlae/conf/exp/$(PILOT_RECIPE).yaml \
 		--rung $(PILOT_RECIPE)
-# the held-out evaluation set of the verdict: 256 scenarios of SPEC's distribution from a seed used
-# nowhere else (90210); committed, so this only rewrites the same file
+# the verdict's judging sets: 256 scenarios of SPEC's distribution each, from seeds used nowhere else
+# (held-out 90210, confirmation 8675309); committed, so this only rewrites the same files
 .PHONY: pilot-heldout-set
 pilot-heldout-set: $(STAMP)
-	rm -f results/pilot/heldout_set_256.json
+	rm -f $(HELDOUT) $(CONFIRM)
 	$(BIN)/python -c "from uavlae.evaluate import load_or_make_eval_set; from uavlae.envs import make_env_config; \
-		load_or_make_eval_set(make_env_config(None), 'results/pilot/heldout_set_256.json', 256, 90210, sample=True)"
+		load_or_make_eval_set(make_env_config(None), '$(HELDOUT)', 256, 90210, sample=True); \
+		load_or_make_eval_set(make_env_config(None), '$(CONFIRM)', 256, 8675309, sample=True)"

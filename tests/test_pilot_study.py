@@ -128,6 +128,15 @@ def test_model_card_from_records_alone(tmp_path):
                         "scenario": n, "data_collected": got, "data_total": 1, "collided": False,
                         "landed": bool(got), "rz_speeding": False, "energy_used": energy,
                         "energy_total": 10000.0, "boundary_exit": False, "length": 10})
+    # the confirmation set: both seeds' pilots collect and land everywhere on 1.5 of 10 kJ (ECR
+    # 0.15), greedy on 2 kJ (0.2): every floor met there (no actor alone or random flown on it)
+    for who, seed, energy in (("pilot", 0, 1500.0), ("pilot", 1, 1500.0), ("greedy", 0, 2000.0)):
+        for n in (0, 1):
+            stage, ev = ("verdict", "pilot") if who == "pilot" else ("references", "alone")
+            eps.append({"stage": stage, "rung": who, "seed": seed, "evaluation": ev, "set": "confirm",
+                        "scenario": n, "data_collected": 1, "data_total": 1, "collided": False, "landed": True,
+                        "rz_speeding": False, "energy_used": energy, "energy_total": 10000.0,
+                        "boundary_exit": False, "length": 10})
     recipe = tmp_path / "pilot.yaml"
     recipe.write_text("# @package _global_\nsafety_filter:\n  mode: train_and_deploy\n")
     with pytest.raises(InputError, match="no finished run of stage 'verdict'"):
@@ -139,7 +148,8 @@ def test_model_card_from_records_alone(tmp_path):
     text = card(tmp_path, recipe).read_text()
     assert "  mode: train_and_deploy" in text and "from commit abc123" in text and "50-70 min" in text
     assert "2,500,000 frames on seeds 0 1" in text and "seed 0: 2,000,000, seed 1: 2,100,000 frames" in text
-    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in text.splitlines() if line.startswith("| pilot")}
+    heldout = text.split("On the 256 scenarios of the confirmation set")[0]  # the held-out set's table comes first
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in heldout.splitlines() if line.startswith("| pilot")}
     assert "| 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.750 [0.000, 1.000] | 0.000 [0.000, 0.000] | 0.200" in \
         rows[("pilot, actor + filter", "0 1")]
     assert "| 1.000 [1.000, 1.000] | 0.000 [0.000, 0.000] | 1.000 [1.000, 1.000] |" in rows[("pilot, actor + filter", "0")]
@@ -153,6 +163,11 @@ def test_model_card_from_records_alone(tmp_path):
     # land; 2 kJ a landed mission, greedy's 1 kJ
     assert ("Where the pilot's ECR (0.200) goes: 0.050 of it in the 25.0% of episodes that did not land; "
             "a landed mission used 2.0 kJ on average, the greedy heuristic's 1.0 kJ.") in text
+    confirm = text.split("## The gate (confirmation set)")[1]
+    assert "## The gate (held-out set)" in text.split("## The gate (confirmation set)")[0]
+    assert confirm.lstrip().startswith("Judged on 2 of the 5 verdict seeds: provisional until all have run. **Gate met.**")
+    assert "| pilot ECR <= greedy's 0.200 | 0.150 | yes |" in confirm
+    assert "On the 256 scenarios of the confirmation set" in text
 
 
 def test_stall_summary_by_hand():

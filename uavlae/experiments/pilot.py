@@ -7,7 +7,8 @@ Five sub-commands:
   ``runs.csv`` (one row a run: stage, rung, seed, frames, wall clock, the recipe's keys, the
   filter's intervention shares, commit), ``episodes.csv`` (one row per evaluation episode: the
   pilot, i.e. the actor through its filter, and the actor alone, on the selection set and, where
-  flown, on the held-out set; the greedy heuristic and uniform random on the selection set) and
+  flown, on the held-out and confirmation sets; the greedy heuristic and uniform random on the
+  selection set) and
   ``curves.csv`` (every evaluation during training: frames, training wall clock, the pilot's and
   the actor's metrics). Records of runs not under ``RUNS_DIR`` are kept.
 - ``references --out results/pilot``: the reference policies flown on the same sets, recorded
@@ -53,7 +54,9 @@ FLOORS = {"DCR": (">=", 0.95), "SLR": (">=", 0.90), "CR": ("<=", 0.02), "RVR": (
 CURVE_SCALARS = tuple((f"eval/{m}", m) for m in METRICS) + tuple((f"eval/actor/{m}", f"actor_{m}") for m in METRICS) + (
     ("eval/train_wall_s", "train_wall_s"), ("eval/safety/intervention_rate", "eval_intervention"),
     ("safety/intervention_rate", "train_intervention"))
-HELDOUT = {"heldout_pilot": "pilot", "heldout_alone": "alone"}  # <run>/evaluate/<folder> -> evaluation
+# a verdict run flown on the sets that judge it: <run>/evaluate/<folder> -> (evaluation, set)
+HELDOUT = {"heldout_pilot": ("pilot", "heldout"), "heldout_alone": ("alone", "heldout"),
+           "confirm_pilot": ("pilot", "confirm"), "confirm_alone": ("alone", "confirm")}
 # the same networks flown by draws from their policy (trainer.eval_actor=sample; make pilot-sampling):
 # <run>/evaluate/<folder> -> (evaluation, set)
 SAMPLED = {"selection_sample": ("pilot_sample", "selection"), "selection_alone_sample": ("alone_sample", "selection"),
@@ -95,9 +98,7 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
                ("random", "selection"): d / "eval" / "baseline_random"}
     if _filtered(cfg):
         sources[("pilot", "selection")] = out
-    for folder, evaluation in HELDOUT.items():
-        sources[(evaluation, "heldout")] = d / "evaluate" / folder
-    for folder, cell in SAMPLED.items():
+    for folder, cell in (HELDOUT | SAMPLED).items():
         sources[cell] = d / "evaluate" / folder
     episodes = []
     for (evaluation, which), folder in sources.items():
@@ -155,7 +156,16 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
 
 # ---------------------------------------------------------------------------- the references
 
-SETS = {"selection": Path("results/eval_set_32.json"), "heldout": Path("results/pilot/heldout_set_256.json")}
+# the selection set chooses; the held-out set (seed 90210) judges; the confirmation set (seed 8675309)
+# judges again on scenarios drawn after the verdict's recipe was fixed and flown by nothing before its
+# checkpoints: the held-out set had been flown with tuning-seed checkpoints while the recipe was chosen
+SETS = {"selection": Path("results/eval_set_32.json"), "heldout": Path("results/pilot/heldout_set_256.json"),
+        "confirm": Path("results/pilot/confirm_set_256.json")}
+# how the report and the card name each set
+SET_TITLES = {"selection": "the selection set (results/eval_set_32.json)",
+              "heldout": "the held-out set (results/pilot/heldout_set_256.json)",
+              "confirm": "the confirmation set (results/pilot/confirm_set_256.json)"}
+SET_NAMES = {"selection": "selection", "heldout": "held-out", "confirm": "confirmation"}
 EVAL_SEED = 12345  # trainer.eval_seed: the OU stream every run's evaluation flies
 
 
@@ -210,7 +220,8 @@ def write_references(out: Path, sets: dict[str, Path] | None = None) -> dict[str
                                      "set": which, "scenario": int(row.get("row", i)),
                                      **{c: row.get(c) for c in EPISODE_COLUMNS}})
                 print(f"{which} {name}", flush=True)
-    old = [r for r in read_rows(out / "episodes.csv") if r["stage"] != "references"]
+    flown = set(sets or SETS)  # the references on sets not flown now stay recorded
+    old = [r for r in read_rows(out / "episodes.csv") if r["stage"] != "references" or r["set"] not in flown]
     write_csv(out / "episodes.csv", old + episodes, [*EPISODE_KEYS, *EPISODE_COLUMNS])
     return {"episodes": len(episodes)}
 
@@ -457,10 +468,10 @@ def build(records: Path) -> Path:
              "Floors of a deployable pilot: " + ", ".join(f"{m} {op} {b}" for m, (op, b) in FLOORS.items())
              + ", ECR no worse than the greedy heuristic's on the same scenarios.", ""]
     refs = sorted({(k[1], k[3]) for k in cells if k[0] == "references"}, key=lambda k: (k[1], k[0]))
-    for which in ("selection", "heldout"):
+    for which in SETS:
         rows = [r for r, w in refs if w == which]
         if rows:
-            lines += [f"## References on the {'held-out' if which == 'heldout' else which} set", "",
+            lines += [f"## References on the {SET_NAMES[which]} set", "",
                       "Flown once each (no learning; `python -m uavlae.experiments.pilot references`): the greedy "
                       "heuristic, the global planner, uniform random (and through the filter), and the follower of "
                       "the planner's geodesic direction (`env=shaped_geodesic_soft`'s column; what planner knowledge "
@@ -477,8 +488,7 @@ def build(records: Path) -> Path:
         # the planner flies the planner as its own heuristic baseline), else the run's baseline
         flown = cells.get(("references", "greedy", "alone", "selection")) or ref["heuristic"]
         ecr = interval(grid_from_rows(flown), "ECR")[0] if flown else None
-        for which, title in (("selection", "the selection set (results/eval_set_32.json)"),
-                             ("heldout", "the held-out set (results/pilot/heldout_set_256.json)")):
+        for which, title in SET_TITLES.items():
             if not any(k[0] == stage and k[3] == which for k in cells):
                 continue
             lines += [f"## {stage}: {title}", "", *_table(stage, runs, cells, curves, which, ecr), ""]
@@ -499,6 +509,14 @@ def build(records: Path) -> Path:
                           "The same networks (each run's end) flown by draws from their tanh-normal policy "
                           "(`trainer.eval_actor=sample`, `make pilot-sampling`) minus flown by their mean action, "
                           "paired on seeds and scenarios:", "", *drawn, ""]
+        if stage == "verdict":  # each recipe's gate, as its model card would state it
+            for rung in _order(runs, stage):
+                seeds = sorted(int(r["seed"]) for r in runs if r["stage"] == stage and r["rung"] == rung)
+                for which in ("heldout", "confirm"):
+                    gate = _gate(cells, stage, rung, seeds, which, heading="###")
+                    if gate:
+                        gate[0] = gate[0].replace("### The gate", f"### verdict, {rung}: the gate")
+                        lines += gate
     target = records / "report.md"
     write_text(target, "\n".join(lines) + "\n")
     return target
@@ -530,7 +548,8 @@ def _span(values: list[float]) -> str:
 VERDICT_SEEDS = 5  # the gate is judged on the mean over this many verdict seeds
 
 
-def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "heldout") -> list[str]:
+def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "heldout",
+          heading: str = "##") -> list[str]:
     """The gate on ``which`` set: each floor against the pilot's pooled metric (the mean over
     seeds and scenarios), ECR against the greedy heuristic's on the same scenarios, and whether
     the actor alone learned (its DCR and SLR intervals above uniform random's); then one line
@@ -563,7 +582,7 @@ def _gate(cells: dict, stage: str, rung: str, seeds: list[int], which: str = "he
     head = (f"Judged on {len(seeds)} of the {VERDICT_SEEDS} verdict seeds: provisional until all have run. "
             if len(seeds) < VERDICT_SEEDS else "")
     verdict = ("**Gate met.**" if not missed else "**Gate not met**: " + "; ".join(missed) + ".")
-    return [f"## The gate ({'held-out' if which == 'heldout' else which} set)", "", head + verdict, "",
+    return [f"{heading} The gate ({SET_NAMES[which]} set)", "", head + verdict, "",
             *markdown_table(rows, ["floor", "measured", "met"]), "", *([split, ""] if split else [])]
 
 
@@ -638,6 +657,7 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
              + ", ".join(f"{m} {op} {b}" for m, (op, b) in FLOORS.items())
              + ", ECR no worse than the greedy heuristic's on the same scenarios.", ""]
     for which, title in (("heldout", "the 256 held-out scenarios (results/pilot/heldout_set_256.json)"),
+                         ("confirm", "the 256 scenarios of the confirmation set (results/pilot/confirm_set_256.json)"),
                          ("selection", "the selection set (results/eval_set_32.json)")):
         rows = []
         for evaluation, flown in (("pilot", "actor + filter"), ("alone", "actor alone")):
@@ -654,7 +674,8 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
                 rows.append({"policy": ref, "seeds": "–", **_pooled_row(eps)})
         if rows:
             lines += [f"On {title}:", "", *markdown_table(rows, ["policy", "seeds", *METRICS]), ""]
-    lines += _gate(cells, stage, rung, seeds)
+    for which in ("heldout", "confirm"):
+        lines += _gate(cells, stage, rung, seeds, which)
     if (records / "stalls.json").exists():
         lines += [_stalls_line(read_json(records / "stalls.json")), ""]
     lines += ["## Safety", "", GUARANTEE, ""]
@@ -669,8 +690,10 @@ def main(argv: list[str] | None = None) -> None:
     r = sub.add_parser("records", help="the study's runs -> CSV records")
     r.add_argument("runs", type=Path)
     r.add_argument("--out", type=Path, default=Path("results/pilot"))
-    f = sub.add_parser("references", help="fly the reference policies on the selection and held-out sets")
+    f = sub.add_parser("references", help="fly the reference policies on the selection, held-out and confirmation sets")
     f.add_argument("--out", type=Path, default=Path("results/pilot"))
+    f.add_argument("--set", choices=list(SETS), action="append", dest="sets",
+                   help="fly only this set (repeatable; default every set): the others' records are kept")
     rep = sub.add_parser("report", help="CSV records -> report.md")
     rep.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
     c = sub.add_parser("card", help="CSV records + the recipe -> the committed pilot's model card (README.md)")
@@ -691,7 +714,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "records":
         print(json.dumps(write_records(args.runs, args.out)))
     elif args.cmd == "references":
-        print(json.dumps(write_references(args.out)))
+        print(json.dumps(write_references(args.out, {k: SETS[k] for k in args.sets} if args.sets else None)))
     else:
         print(build(args.records))
 
