@@ -1,6 +1,7 @@
 """The pilot study's records and report (uavlae/experiments/pilot.py) on hand-made records."""
 
 import csv
+import math
 
 import pytest
 
@@ -168,6 +169,30 @@ def test_model_card_from_records_alone(tmp_path):
     assert confirm.lstrip().startswith("Judged on 2 of the 5 verdict seeds: provisional until all have run. **Gate met.**")
     assert "| pilot ECR <= greedy's 0.200 | 0.150 | yes |" in confirm
     assert "On the 256 scenarios of the confirmation set" in text
+
+
+def test_mission_pace_by_hand():
+    """chunk 2 slots, still 5 m. Row 0 lands after 4 slots from (0, 0), (0, 0), (0, 10), (0, 20):
+    path 0 + 10 + 10 = 20 m; its chunks move 0 m (held) and 10 m: 2 held slots. Row 1 does not
+    land (ignored). Row 2 lands after 3 slots from (0, 0), (3, 4), (6, 8): path 10 m; its one whole
+    chunk moves 5 m, not below 5: none held (the last, one-slot chunk is not counted). Landed:
+    (4 + 3) / 2 = 3.5 slots, (20 + 10) / 2 = 15 m, 30 m / 7 slots = 4.2857 m a slot, (2 + 0) / 2 = 1
+    held slot."""
+    import torch
+
+    from uavlae.experiments.pilot import mission_pace
+
+    positions = torch.tensor([
+        [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+        [[0.0, 0.0], [0.0, 0.0], [3.0, 4.0]],
+        [[0.0, 10.0], [0.0, 0.0], [6.0, 8.0]],
+        [[0.0, 20.0], [0.0, 0.0], [100.0, 100.0]],
+    ])
+    found = mission_pace(positions, torch.tensor([4, 4, 3]), torch.tensor([True, False, True]), chunk=2, still=5.0)
+    assert found == {"landed_slots_mean": 3.5, "landed_path_m_mean": pytest.approx(15.0),
+                     "landed_m_per_slot": pytest.approx(30 / 7), "landed_held_slots_mean": 1.0, "chunk": 2}
+    nobody = mission_pace(positions, torch.tensor([4, 4, 3]), torch.tensor([False, False, False]))
+    assert math.isnan(nobody["landed_m_per_slot"])
 
 
 def test_stall_summary_by_hand():

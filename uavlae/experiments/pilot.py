@@ -270,11 +270,44 @@ def stall_summary(positions: Any, changes: Any, lengths: Any, landed: Any, obsta
     }
 
 
+HELD_CHUNK = 50  # slots: a landed mission's time is cut into chunks this long ...
+
+
+def mission_pace(positions: Any, lengths: Any, landed: Any, chunk: int = HELD_CHUNK,
+                 still: float = STALL_STILL_M) -> dict[str, float]:
+    """Where a landed mission's time goes. Each landed row's flight ([T, B, 2] ``positions``,
+    the position before each of its ``lengths`` slots): its slots, its path (the sum of the
+    moves between those positions) and so its pace (path / slots, pooled over the landed rows),
+    and its held slots: the flight cut into whole chunks of ``chunk`` slots from its start (a
+    last, shorter chunk is not counted), a chunk whose net displacement is below ``still`` m
+    held. Every slot costs 294-337 J whatever the DCU does (docs/model.md §4), so a mission's
+    energy is its slots: a longer path, a slower pace or time held."""
+    import torch
+
+    rows = torch.nonzero(landed).flatten().tolist()
+    if not rows:
+        return {"landed_slots_mean": math.nan, "landed_path_m_mean": math.nan, "landed_m_per_slot": math.nan,
+                "landed_held_slots_mean": math.nan, "chunk": chunk}
+    held, paths = [], []
+    for i in rows:
+        n_slots = int(lengths[i])
+        p = positions[:n_slots, i]
+        paths.append(float(torch.linalg.vector_norm(p[1:] - p[:-1], dim=-1).sum()))
+        starts = torch.arange(n_slots // chunk) * chunk
+        net = torch.linalg.vector_norm(p[starts + chunk - 1] - p[starts], dim=-1)
+        held.append(int((net < still).sum()) * chunk)
+    slots = [int(lengths[i]) for i in rows]
+    return {"landed_slots_mean": sum(slots) / len(rows), "landed_path_m_mean": sum(paths) / len(rows),
+            "landed_m_per_slot": sum(paths) / sum(slots), "landed_held_slots_mean": sum(held) / len(rows),
+            "chunk": chunk}
+
+
 def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, float]:
     """Fly the exported pilot ``actor`` on every scenario of ``scenario_set`` as ``uavlae.fly
     --all`` does (the same batch and OU stream), asking its actor alone beside it each slot for
     the wish the filter corrected, and summarise where the unlanded episodes ended
-    (:func:`stall_summary`)."""
+    (:func:`stall_summary`) and where the landed ones' time went (:func:`mission_pace`), beside the
+    greedy heuristic flown on the same scenarios and OU stream (``greedy_*``)."""
     import torch
 
     from uavlae import fly
@@ -293,14 +326,24 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
         positions.append(state["position"].clone())
         changes.append(torch.linalg.vector_norm(action - alone(state), dim=-1))
 
+    from uavlae.policies.greedy import GreedyPolicy
+
+    greedy, greedy_positions = GreedyPolicy(cfg), []
     with torch.no_grad():
         flown = fly.fly_batch(fly.policy_of(module, meta, cfg, True), cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
                               max_steps=meta.get("eval_max_steps"), on_step=record)
+        by_greedy = fly.fly_batch(greedy.act, cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
+                                  max_steps=meta.get("eval_max_steps"),
+                                  on_step=lambda state, _: greedy_positions.append(state["position"].clone()))
     parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
     scen = {k: torch.cat([p[k] for p in parts]) for k in ("bz", "bz_mask", "nfz", "nfz_mask")}
-    return stall_summary(torch.stack(positions), torch.stack(changes), torch.tensor(flown["length"]),
-                         torch.tensor(flown["landed"]), [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])],
-                         window)
+    lengths, landed = torch.tensor(flown["length"]), torch.tensor(flown["landed"])
+    g_pace = mission_pace(torch.stack(greedy_positions), torch.tensor(by_greedy["length"]), torch.tensor(by_greedy["landed"]))
+    return {**stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
+                            [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window),
+            **mission_pace(torch.stack(positions), lengths, landed),
+            "greedy_landed": int(sum(by_greedy["landed"])),
+            **{f"greedy_{k}": v for k, v in g_pace.items() if k != "chunk"}}
 
 
 # ---------------------------------------------------------------------------- the report
@@ -618,6 +661,17 @@ def _stalls_line(found: dict[str, Any]) -> str:
                                 if found["unlanded_filter_change_median"] > 2 * found["landed_filter_change_mean"] else "."))
 
 
+def _pace_line(found: dict[str, Any]) -> str:
+    """Where the landed missions' time went, against the greedy heuristic's on the same scenarios."""
+    return (f"Its landed missions took {found['landed_slots_mean']:.0f} slots on average (greedy's "
+            f"{found['greedy_landed_slots_mean']:.0f}): a path of {found['landed_path_m_mean']:.0f} m (greedy's "
+            f"{found['greedy_landed_path_m_mean']:.0f}) at {found['landed_m_per_slot']:.1f} m a slot (greedy's "
+            f"{found['greedy_landed_m_per_slot']:.1f}), {found['landed_held_slots_mean']:.0f} slots of them held "
+            f"(chunks of {found['chunk']} slots with under {STALL_STILL_M:.0f} m of net motion; greedy's "
+            f"{found['greedy_landed_held_slots_mean']:.0f}). A slot costs 294-337 J whatever the DCU does, so the "
+            "energy of a mission is its slots.")
+
+
 def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot",
          pilot_file: str = "results/pilot/pilot.pt2", committed_seed: int = 0) -> Path:
     """``README.md`` in ``records``: the committed pilot's model card, from the CSV records and
@@ -677,7 +731,8 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
     for which in ("heldout", "confirm"):
         lines += _gate(cells, stage, rung, seeds, which)
     if (records / "stalls.json").exists():
-        lines += [_stalls_line(read_json(records / "stalls.json")), ""]
+        found = read_json(records / "stalls.json")
+        lines += [_stalls_line(found), "", *([_pace_line(found), ""] if "landed_m_per_slot" in found else [])]
     lines += ["## Safety", "", GUARANTEE, ""]
     target = records / "README.md"
     write_text(target, "\n".join(lines) + "\n")
