@@ -221,3 +221,23 @@ def test_stall_summary_by_hand():
     assert found == {"episodes": 3, "unlanded": 2, "unlanded_at_obstacle": 1, "unlanded_held": 1,
                      "unlanded_filter_change_median": pytest.approx(0.5), "landed_filter_change_mean": pytest.approx(0.2),
                      "window": 2}
+
+
+def test_the_cards_stall_and_pace_lines():
+    """The card's sentences from stalls.json: a pilot whose every episode landed says so (no
+    median of nothing); the pace line rounds 330.09 slots to 330, 2356.6 m to 2357, 7.139 m a
+    slot to 7.1 against greedy's 232.6 -> 233, 2137.7 -> 2138, 9.19 -> 9.2."""
+    from uavlae.experiments.pilot import _pace_line, _stalls_line
+
+    found = {"actor": "p.pt2", "scenario": "s.json", "episodes": 32, "unlanded": 0, "unlanded_at_obstacle": 0,
+             "unlanded_held": 0, "unlanded_filter_change_median": math.nan, "landed_filter_change_mean": 0.19,
+             "window": 200, "landed_slots_mean": 330.09, "landed_path_m_mean": 2356.6, "landed_m_per_slot": 7.139,
+             "landed_held_slots_mean": 21.9, "chunk": 50, "greedy_landed": 30, "greedy_landed_slots_mean": 232.6,
+             "greedy_landed_path_m_mean": 2137.7, "greedy_landed_m_per_slot": 9.19, "greedy_landed_held_slots_mean": 3.3}
+    assert _stalls_line(found).endswith("nowhere; every one of its 32 episodes landed.")
+    assert _pace_line(found).startswith(
+        "Its landed missions took 330 slots on average (greedy's 233): a path of 2357 m (greedy's 2138) at 7.1 m a "
+        "slot (greedy's 9.2), 22 slots of them held (chunks of 50 slots with under 20 m of net motion; greedy's 3).")
+    held = {**found, "unlanded": 4, "unlanded_at_obstacle": 3, "unlanded_held": 2, "unlanded_filter_change_median": 1.0}
+    assert "of its 4 episodes of 32 that did not land, 3 ended within 3 m" in _stalls_line(held)
+    assert _stalls_line(held).endswith("the filter keeps it out.")  # 1.0 > 2 x 0.19

@@ -651,6 +651,9 @@ def _energy_split(pilot: list[dict[str, str]], greedy: list[dict[str, str]] | No
 
 
 def _stalls_line(found: dict[str, Any]) -> str:
+    if not found["unlanded"]:
+        return (f"Where the committed pilot stops short (`python -m uavlae.experiments.pilot stalls`, `{found['actor']}` "
+                f"on `{found['scenario']}`): nowhere; every one of its {found['episodes']} episodes landed.")
     return (f"Where the committed pilot stops short (`python -m uavlae.experiments.pilot stalls`, `{found['actor']}` on "
             f"`{found['scenario']}`): of its {found['unlanded']} episodes of {found['episodes']} that did not land, "
             f"{found['unlanded_at_obstacle']} ended within {STALL_NEAR_M:.0f} m of a building or no-fly zone, "
