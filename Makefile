@@ -471,7 +471,7 @@ advice-report: $(STAMP)
 # [decision] The cheap ingredients come first: the Lagrangian (autograd) and the wider LayerNorm
 # networks, each several times SAC's fused update, take most of the compute, so they are added last, on the
 # best cheap rung. Screening: 1M frames, the tuning seeds; the verdict: the chosen recipe
-# (+exp=pilot) at 2.5M frames on seeds 0-4, also flown on the held-out set. Every stage is a
+# (PILOT_RECIPE) at 2.5M frames on seeds 0-4, also flown on the held-out and confirmation sets. Every stage is a
 # resumable sweep: run the same command again. PILOT_JOBS: runs side by side (one per core).
 PILOT_EXP_ROOT ?= runs
 PILOT_JOBS ?= 1
@@ -581,11 +581,12 @@ pilot-screen-lag: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LAG) experiment.method=saclag_ego_shaped
 pilot-screen-learner: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_shaped
-# the verdict: the chosen recipe (+exp=pilot, fixed before these runs) on the verdict seeds at the
+# the verdict: a recipe fixed before these runs (PILOT_RECIPE) on the verdict seeds at the
 # paper's budget, each flown on the held-out set through its filter and alone; seed 0's pilot exported
 PILOT_VERDICT_FRAMES ?= 2500000
 # the recipe a verdict runs (uavlae/conf/exp/<it>.yaml; its runs' method and folder take its name)
-PILOT_RECIPE ?= pilot
+# (pilot_drawn: the committed pilot's, which +exp=pilot composes; pilot_mean: the first)
+PILOT_RECIPE ?= pilot_drawn
 HELDOUT = results/pilot/heldout_set_256.json
 # a second judging set, drawn after the verdict's recipe was fixed (the held-out set had been flown
 # with tuning-seed checkpoints while recipes were chosen); flown by nothing before the verdict runs
@@ -629,7 +630,7 @@ pilot-stalls: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
 pilot-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
-# the committed pilot's model card (results/pilot/README.md) from the records and +exp=pilot's file
+# the committed pilot's model card (results/pilot/README.md) from the records and its recipe's file
 pilot-card: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot card results/pilot --recipe uavlae/conf/exp/$(PILOT_RECIPE).yaml \
 		--rung $(PILOT_RECIPE)

@@ -39,7 +39,7 @@ def test_exp_composes_and_validates(hydra_ctx, exp):
     # the paper's greedy heuristic wherever one acts, the planner only under its own names
     assert cfg.heuristic_kind == ("planner" if exp.endswith("_planner") or exp.startswith("pilot") else "greedy")
     expected_advisor = {
-        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "pilot_drawn": "heuristic", "llm": "llm",
+        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "pilot_drawn": "heuristic", "pilot_mean": "heuristic", "llm": "llm",
         "sac_hover": "hover", "sac_random_advice": "random",
     }
     assert cfg.advisor.kind == expected_advisor.get(exp, "none")
@@ -175,3 +175,17 @@ def test_every_pilot_rung_composes_and_keeps_the_rules(hydra_ctx):
         cfg = _compose("+sweep=pilot", "+profile=quick", "env=default", f"+exp={recipe}")
         validate_config(OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
         assert run_problems(cfg, make_env_config(cfg.env)) == [] and cfg.name == recipe
+
+
+def test_the_committed_pilots_recipe_is_the_second_recipe_under_its_own_name(hydra_ctx):
+    """+exp=pilot composes +exp=pilot_drawn (the recipe its verdict chose): the two configs differ
+    in the name and what follows from it (the run folder, the method) and nowhere else."""
+    def flat(cfg, prefix=""):
+        out = {}
+        for k, v in cfg.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    pilot, drawn = (flat(OmegaConf.to_container(_compose(f"+exp={e}"), resolve=True)) for e in ("pilot", "pilot_drawn"))
+    assert {k for k in pilot.keys() | drawn.keys() if pilot.get(k) != drawn.get(k)} == {"name", "run_dir", "experiment.method"}
+    assert pilot["trainer.eval_actor"] == "sample" and pilot["safety_filter.learn_from"] == "proposed"

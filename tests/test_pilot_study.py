@@ -143,10 +143,10 @@ def test_model_card_from_records_alone(tmp_path):
     with pytest.raises(InputError, match="no finished run of stage 'verdict'"):
         _write(tmp_path / "runs.csv", [{**runs[0], "stage": "screen"}], list(runs[0]))
         _write(tmp_path / "episodes.csv", [], [*EPISODE_KEYS, *EPISODE_COLUMNS])
-        card(tmp_path, recipe)
+        card(tmp_path, recipe, rung="pilot")
     _write(tmp_path / "runs.csv", runs, list(runs[0]))
     _write(tmp_path / "episodes.csv", eps, [*EPISODE_KEYS, *EPISODE_COLUMNS])
-    text = card(tmp_path, recipe).read_text()
+    text = card(tmp_path, recipe, rung="pilot").read_text()
     assert "  mode: train_and_deploy" in text and "from commit abc123" in text and "50-70 min" in text
     assert "2,500,000 frames on seeds 0 1" in text and "seed 0: 2,000,000, seed 1: 2,100,000 frames" in text
     heldout = text.split("On the 256 scenarios of the confirmation set")[0]  # the held-out set's table comes first

@@ -16,7 +16,7 @@ Five sub-commands:
   random, plain-SAC-free controllers with and without the filter, and the follower of the
   planner's geodesic direction (what planner knowledge buys) with and without the filter.
 - ``card results/pilot``: the committed pilot's model card (``README.md``) from those files
-  and the recipe (``uavlae/conf/exp/pilot.yaml``) alone.
+  and the recipe (``uavlae/conf/exp/pilot_drawn.yaml``, which ``+exp=pilot`` composes) alone.
 - ``stalls --actor results/pilot/pilot.pt2``: where an exported pilot's unlanded held-out
   episodes end (``stalls.json``): beside a building or no-fly zone, held there, and how much
   the filter changes the actor's wish over their last slots; the card reports it.
@@ -366,7 +366,7 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 
 
 # the recipes a verdict runs (uavlae/conf/exp/<name>.yaml; make pilot-verdict PILOT_RECIPE=<name>)
-RECIPES = ("pilot", "pilot_drawn")
+RECIPES = ("pilot_mean", "pilot_drawn")
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
           "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
@@ -675,7 +675,7 @@ def _pace_line(found: dict[str, Any]) -> str:
             "energy of a mission is its slots.")
 
 
-def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot",
+def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot_drawn",
          pilot_file: str = "results/pilot/pilot.pt2", committed_seed: int = 0) -> Path:
     """``README.md`` in ``records``: the committed pilot's model card, from the CSV records and
     the recipe file alone: the recipe and its commit, frames and wall clock, the five metrics of
@@ -756,8 +756,9 @@ def main(argv: list[str] | None = None) -> None:
     rep.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
     c = sub.add_parser("card", help="CSV records + the recipe -> the committed pilot's model card (README.md)")
     c.add_argument("records", type=Path, nargs="?", default=Path("results/pilot"))
-    c.add_argument("--recipe", type=Path, default=Path("uavlae/conf/exp/pilot.yaml"))
-    c.add_argument("--rung", default="pilot", help="the verdict runs' method (make pilot-verdict PILOT_RECIPE=...)")
+    c.add_argument("--recipe", type=Path, default=Path("uavlae/conf/exp/pilot_drawn.yaml"),
+                   help="the committed recipe's file (+exp=pilot composes it)")
+    c.add_argument("--rung", default="pilot_drawn", help="the verdict runs' method (make pilot-verdict PILOT_RECIPE=...)")
     st = sub.add_parser("stalls", help="where an exported pilot's unlanded episodes end (-> OUT/stalls.json)")
     st.add_argument("--actor", type=Path, default=Path("results/pilot/pilot.pt2"))
     st.add_argument("--scenario", type=Path, default=SETS["heldout"])
