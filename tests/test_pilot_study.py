@@ -97,6 +97,34 @@ def test_report_from_records_alone(tmp_path):
     assert ("ego", "100 101", "through the filter") not in rows
 
 
+def test_a_rung_that_flies_draws_is_paired_with_its_parents_draws(tmp_path):
+    """Rung `plain` flies its mean action (both scenarios collected and landed) and, flown by draws
+    (make pilot-sampling), collects and lands in scenario 0 only. Rung `drawn` flies draws in its
+    own evaluations (eval_actor sample) and collects and lands in both. Its difference from plain
+    pairs draws with draws: ΔDCR = ΔSLR = +0.5 (resampled 0, 0.5 or 1: [0, 1]), not 0 against
+    plain's mean; its rows say it flies draws."""
+    eps, runs = [], []
+    for rung, mode, cells in (("plain", "mean", (("pilot", (1, 1)), ("pilot_sample", (1, 0)))),
+                              ("drawn", "sample", (("pilot", (1, 1)),))):
+        for seed in (100, 101):
+            runs.append({"stage": "screen", "rung": rung, "seed": seed, "frames": 1000, "wall_s": 60.0,
+                         "eval_actor": mode})
+            for ev, got in cells:
+                for n in (0, 1):
+                    eps.append({"stage": "screen", "rung": rung, "seed": seed, "evaluation": ev, "set": "selection",
+                                "scenario": n, "data_collected": got[n], "data_total": 1, "collided": False,
+                                "landed": bool(got[n]), "rz_speeding": False, "energy_used": 1.0,
+                                "energy_total": 10.0, "boundary_exit": False, "length": 10})
+    _write(tmp_path / "runs.csv", runs, list(runs[0]))
+    _write(tmp_path / "episodes.csv", eps, [*EPISODE_KEYS, *EPISODE_COLUMNS])
+    _write(tmp_path / "curves.csv", [], ["stage", "rung", "seed", "frames", *[c for _, c in CURVE_SCALARS]])
+    text = build(tmp_path).read_text()
+    assert "| drawn vs plain | actor (a draw) + filter | 0.500 [0.000, 1.000] | 0.000 [0.000, 0.000] | " \
+           "0.500 [0.000, 1.000] |" in text
+    assert "| drawn | 100 101 | actor (a draw) + filter | 1.000 [1.000, 1.000] |" in text
+    assert "| plain | 100 101 | actor + filter | 1.000 [1.000, 1.000] |" in text
+
+
 def test_model_card_from_records_alone(tmp_path):
     """The verdict's rung `pilot`, seeds 0 and 1, two held-out scenarios of data 1 each. Seed 0's
     pilot collects and lands in both: DCR = SLR = 1. Seed 1's collects and lands in scenario 0
@@ -195,6 +223,37 @@ def test_mission_pace_by_hand():
     assert math.isnan(nobody["landed_m_per_slot"])
 
 
+def test_mission_pace_over_residential_zones_by_hand():
+    """The flights of test_mission_pace_by_hand with row 0's slots 2 and 3 (from (0, 10) and
+    (0, 20)) starting over an RZ: 2 RZ slots for row 0, none for row 2, so (2 + 0) / 2 = 1 a
+    landed mission; the moves that start over it: only slot 2's, 10 m (slot 3 is row 0's last, its
+    move unrecorded): 10 m a slot; elsewhere row 0's 0 and 10 m and row 2's 5 and 5 m: 20 m / 4 =
+    5 m a slot. The unlanded row 1, over an RZ throughout, counts nowhere."""
+    import torch
+
+    from uavlae.experiments.pilot import landed_mean, mission_pace
+
+    positions = torch.tensor([
+        [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+        [[0.0, 0.0], [0.0, 0.0], [3.0, 4.0]],
+        [[0.0, 10.0], [0.0, 0.0], [6.0, 8.0]],
+        [[0.0, 20.0], [0.0, 0.0], [100.0, 100.0]],
+    ])
+    over_rz = torch.tensor([[False, True, False], [False, True, False], [True, True, False], [True, True, False]])
+    lengths, landed = torch.tensor([4, 4, 3]), torch.tensor([True, False, True])
+    found = mission_pace(positions, lengths, landed, chunk=2, still=5.0, over_rz=over_rz)
+    assert found["landed_rz_slots_mean"] == 1.0
+    assert found["landed_rz_m_per_slot"] == pytest.approx(10.0)
+    assert found["landed_elsewhere_m_per_slot"] == pytest.approx(5.0)
+    # a speed a slot: row 0 flies 1, 2, 3, 4 m/s, row 2 (3 slots) 6 m/s, row 1 (unlanded) 100:
+    # (1 + 2 + 3 + 4 + 6 + 6 + 6) / 7 = 4
+    speeds = torch.tensor([[1.0, 100.0, 6.0], [2.0, 100.0, 6.0], [3.0, 100.0, 6.0], [4.0, 100.0, 100.0]])
+    assert landed_mean(speeds, lengths, landed) == pytest.approx(4.0)
+    assert math.isnan(landed_mean(speeds, lengths, torch.tensor([False, False, False])))
+    nobody = mission_pace(positions, lengths, torch.tensor([False, False, False]), over_rz=over_rz)
+    assert math.isnan(nobody["landed_rz_m_per_slot"])
+
+
 def test_stall_summary_by_hand():
     """Three rows, window 2. Row 0 lands after 2 slots, the filter changing its wish by 0.2 m/s
     each. Row 1 flies 4 slots, ends at (11, 10), 1 m west of the NFZ [12, 0, 20, 20], and does
@@ -238,6 +297,14 @@ def test_the_cards_stall_and_pace_lines():
     assert _pace_line(found).startswith(
         "Its landed missions took 330 slots on average (greedy's 233): a path of 2357 m (greedy's 2138) at 7.1 m a "
         "slot (greedy's 9.2), 22 slots of them held (chunks of 50 slots with under 20 m of net motion; greedy's 3).")
+    assert "residential" not in _pace_line(found)  # a stalls.json written before the split says nothing of it
+    split = {**found, "landed_rz_slots_mean": 53.04, "landed_rz_m_per_slot": 3.81, "landed_elsewhere_m_per_slot": 7.74,
+             "greedy_landed_rz_slots_mean": 21.6, "greedy_landed_rz_m_per_slot": 4.67,
+             "greedy_landed_elsewhere_m_per_slot": 9.75, "landed_wish_speed_mean": 8.14, "landed_speed_mean": 6.97}
+    assert _pace_line(split).endswith(
+        " Of those slots, 53 start over a residential zone, flown at 3.8 m a slot (greedy: 22 at 4.7; the limit is "
+        "5 m/s); elsewhere 7.7 m a slot (greedy's 9.8). Its actor wishes 8.1 m/s on average over those slots and the "
+        "filter lets it fly 7.0.")
     held = {**found, "unlanded": 4, "unlanded_at_obstacle": 3, "unlanded_held": 2, "unlanded_filter_change_median": 1.0}
     assert "of its 4 episodes of 32 that did not land, 3 ended within 3 m" in _stalls_line(held)
     assert _stalls_line(held).endswith("the filter keeps it out.")  # 1.0 > 2 x 0.19

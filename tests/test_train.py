@@ -4,6 +4,7 @@ resume after SIGKILL (bit-identical to an uninterrupted run), export and fly."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -493,6 +494,9 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     assert found["episodes"] == 3 and found["unlanded"] == 3 - sum(flown["landed"])
     assert 0 <= found["unlanded_held"] <= found["unlanded_at_obstacle"] <= found["unlanded"]
     assert 0 <= found["landed_filter_change_mean"] <= 2 * env_cfg.motion.v_max or found["unlanded"] == 3
+    # speeds are the env's (|v| <= v_max); nothing landed, nothing to average
+    for k in ("landed_wish_speed_mean", "landed_speed_mean"):
+        assert (0 <= found[k] <= env_cfg.motion.v_max + 1e-6) if found["unlanded"] < 3 else math.isnan(found[k])
 
 
 def test_keep_best_keeps_the_networks_of_the_best_evaluation(tmp_path):

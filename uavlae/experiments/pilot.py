@@ -91,6 +91,8 @@ def run_record(d: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict
            "eval_intervention": final.get("eval/safety/intervention_rate"),
            "eval_mean_change": final.get("eval/safety/mean_change"),
            "best_frames": final.get("best/frames"),
+           # how the run's own evaluations fly its actor: mean, or sample (a draw from its policy)
+           "eval_actor": str((cfg.get("trainer") or {}).get("eval_actor", "mean")),
            "commit": str((meta.get("git") or {}).get("commit") or "")[:10]}
     out = train_eval_dir(d, frames)
     sources = {("alone", "selection"): out / "actor_alone" if _filtered(cfg) else out,
@@ -274,32 +276,62 @@ HELD_CHUNK = 50  # slots: a landed mission's time is cut into chunks this long .
 
 
 def mission_pace(positions: Any, lengths: Any, landed: Any, chunk: int = HELD_CHUNK,
-                 still: float = STALL_STILL_M) -> dict[str, float]:
+                 still: float = STALL_STILL_M, over_rz: Any = None) -> dict[str, float]:
     """Where a landed mission's time goes. Each landed row's flight ([T, B, 2] ``positions``,
     the position before each of its ``lengths`` slots): its slots, its path (the sum of the
     moves between those positions) and so its pace (path / slots, pooled over the landed rows),
     and its held slots: the flight cut into whole chunks of ``chunk`` slots from its start (a
     last, shorter chunk is not counted), a chunk whose net displacement is below ``still`` m
     held. Every slot costs 294-337 J whatever the DCU does (docs/model.md §4), so a mission's
-    energy is its slots: a longer path, a slower pace or time held."""
+    energy is its slots: a longer path, a slower pace or time held.
+
+    With ``over_rz`` ([T, B] bool: the slot starts over a residential zone, where the speed limit
+    is half of v_max), also the slots a landed mission spends over RZs and the pace over them and
+    elsewhere, each pooled over the moves that start there (a row's last slot has no recorded
+    move)."""
     import torch
 
     rows = torch.nonzero(landed).flatten().tolist()
+    rz_keys = ("landed_rz_slots_mean", "landed_rz_m_per_slot", "landed_elsewhere_m_per_slot")
     if not rows:
         return {"landed_slots_mean": math.nan, "landed_path_m_mean": math.nan, "landed_m_per_slot": math.nan,
-                "landed_held_slots_mean": math.nan, "chunk": chunk}
+                "landed_held_slots_mean": math.nan, "chunk": chunk,
+                **({k: math.nan for k in rz_keys} if over_rz is not None else {})}
     held, paths = [], []
+    rz_slots, rz_moves, rz_path, else_moves, else_path = 0, 0, 0.0, 0, 0.0
     for i in rows:
         n_slots = int(lengths[i])
         p = positions[:n_slots, i]
-        paths.append(float(torch.linalg.vector_norm(p[1:] - p[:-1], dim=-1).sum()))
+        moves = torch.linalg.vector_norm(p[1:] - p[:-1], dim=-1)
+        paths.append(float(moves.sum()))
         starts = torch.arange(n_slots // chunk) * chunk
         net = torch.linalg.vector_norm(p[starts + chunk - 1] - p[starts], dim=-1)
         held.append(int((net < still).sum()) * chunk)
+        if over_rz is not None:
+            rz = over_rz[:n_slots, i].bool()
+            rz_slots += int(rz.sum())
+            rz_moves += int(rz[:-1].sum())
+            rz_path += float(moves[rz[:-1]].sum())
+            else_moves += int((~rz[:-1]).sum())
+            else_path += float(moves[~rz[:-1]].sum())
     slots = [int(lengths[i]) for i in rows]
-    return {"landed_slots_mean": sum(slots) / len(rows), "landed_path_m_mean": sum(paths) / len(rows),
-            "landed_m_per_slot": sum(paths) / sum(slots), "landed_held_slots_mean": sum(held) / len(rows),
-            "chunk": chunk}
+    out = {"landed_slots_mean": sum(slots) / len(rows), "landed_path_m_mean": sum(paths) / len(rows),
+           "landed_m_per_slot": sum(paths) / sum(slots), "landed_held_slots_mean": sum(held) / len(rows),
+           "chunk": chunk}
+    if over_rz is not None:
+        out.update({"landed_rz_slots_mean": rz_slots / len(rows),
+                    "landed_rz_m_per_slot": rz_path / rz_moves if rz_moves else math.nan,
+                    "landed_elsewhere_m_per_slot": else_path / else_moves if else_moves else math.nan})
+    return out
+
+
+def landed_mean(values: Any, lengths: Any, landed: Any) -> float:
+    """The mean of ``values`` ([T, B], one a slot) over every slot of the landed rows."""
+    import torch
+
+    live = (torch.arange(values.shape[0]).unsqueeze(1) < torch.as_tensor(lengths).unsqueeze(0)) \
+        & torch.as_tensor(landed).bool().unsqueeze(0)
+    return float(values[live].mean()) if bool(live.any()) else math.nan
 
 
 def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, float]:
@@ -320,28 +352,49 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
     cfg = make_env_config(meta["env"])
     alone = fly.policy_of(module, meta, cfg, False)
     scenarios = read_json(scenario_set)
-    positions, changes = [], []
+    from uavlae.envs import physics as ph
+
+    positions, changes, over_rz, speeds, wishes = [], [], [], [], []
+    v_max = cfg.motion.v_max
+
+    def speed(action: Any) -> Any:  # m/s, as the env flies an action (docs/model.md §2)
+        return torch.linalg.vector_norm(ph.action_to_velocity(action, v_max), dim=-1)
+
+    def where(state: Any, into: list[Any]) -> None:
+        into.append(ph.point_rect_distance(state["position"], state["rz"], state["rz_mask"]).le(0).any(-1))
 
     def record(state: Any, action: Any) -> None:
+        wish = alone(state)
         positions.append(state["position"].clone())
-        changes.append(torch.linalg.vector_norm(action - alone(state), dim=-1))
+        changes.append(torch.linalg.vector_norm(action - wish, dim=-1))
+        where(state, over_rz)
+        speeds.append(speed(action))
+        wishes.append(speed(wish))
 
     from uavlae.policies.greedy import GreedyPolicy
 
-    greedy, greedy_positions = GreedyPolicy(cfg), []
+    greedy, greedy_positions, greedy_rz = GreedyPolicy(cfg), [], []
+
+    def record_greedy(state: Any, _: Any) -> None:
+        greedy_positions.append(state["position"].clone())
+        where(state, greedy_rz)
+
     with torch.no_grad():
         flown = fly.fly_batch(fly.policy_of(module, meta, cfg, True), cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
                               max_steps=meta.get("eval_max_steps"), on_step=record)
         by_greedy = fly.fly_batch(greedy.act, cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
-                                  max_steps=meta.get("eval_max_steps"),
-                                  on_step=lambda state, _: greedy_positions.append(state["position"].clone()))
+                                  max_steps=meta.get("eval_max_steps"), on_step=record_greedy)
     parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
     scen = {k: torch.cat([p[k] for p in parts]) for k in ("bz", "bz_mask", "nfz", "nfz_mask")}
     lengths, landed = torch.tensor(flown["length"]), torch.tensor(flown["landed"])
-    g_pace = mission_pace(torch.stack(greedy_positions), torch.tensor(by_greedy["length"]), torch.tensor(by_greedy["landed"]))
+    g_pace = mission_pace(torch.stack(greedy_positions), torch.tensor(by_greedy["length"]),
+                          torch.tensor(by_greedy["landed"]), over_rz=torch.stack(greedy_rz))
     return {**stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
                             [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window),
-            **mission_pace(torch.stack(positions), lengths, landed),
+            **mission_pace(torch.stack(positions), lengths, landed, over_rz=torch.stack(over_rz)),
+            # the actor's wished speed and the speed the filter let it fly, over the landed slots
+            "landed_wish_speed_mean": landed_mean(torch.stack(wishes), lengths, landed),
+            "landed_speed_mean": landed_mean(torch.stack(speeds), lengths, landed),
             "greedy_landed": int(sum(by_greedy["landed"])),
             **{f"greedy_{k}": v for k, v in g_pace.items() if k != "chunk"}}
 
@@ -374,7 +427,8 @@ LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sa
           "sac_ego_filter_shaped_wish_teach_all", "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_strong",
           "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide",
-          "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped", *RECIPES)
+          "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped",
+          "pilot_drawn_sharp", *RECIPES)
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -433,8 +487,10 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
                 continue
             g = grid_from_rows(episodes)
             pilot = evaluation == "pilot"
+            # a run that flies draws flies its own evaluations so (trainer.eval_actor=sample)
+            by_draws = evaluation in ("pilot", "alone") and any(r.get("eval_actor") == "sample" for r in rr)
             rows.append({"rung": rung, "seeds": " ".join(map(str, g.seeds)),
-                         "flown": FLOWN[evaluation],
+                         "flown": FLOWN[f"{evaluation}_sample" if by_draws else evaluation],
                          **{m: fmt_interval(*interval(g, m)) for m in METRICS},
                          "filter acts (train / eval)": share if pilot else "", "wall (min)": f"{wall:.0f}",
                          ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else "",
@@ -453,7 +509,8 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "sac_ego_filter_shaped_teach_all_labels_greedy": "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_wide": "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_wide_economy": "sac_ego_filter_shaped_teach_all_labels_wide",
-          "saclag_ego_shaped": "sac_ego_filter_shaped"}
+          "saclag_ego_shaped": "sac_ego_filter_shaped",
+          "pilot_drawn_sharp": "sac_ego_filter_shaped_wish_teach_all"}
 
 
 def _paired(a: list[dict[str, str]] | None, b: list[dict[str, str]] | None) -> tuple[list[int], dict[str, str]] | None:
@@ -473,14 +530,22 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
     """Paired differences of each rung against the rung it changes (:data:`PARENT`, else the
     one above it), for the pilot and the actor alone."""
     rungs = _order(runs, stage)
+    drawn = {r["rung"] for r in runs if r["stage"] == stage and r.get("eval_actor") == "sample"}
     rows = []
     for previous, rung in zip(rungs, rungs[1:]):
         above = PARENT[rung] if PARENT.get(rung) in rungs else previous
         for evaluation in ("pilot", "alone"):
-            deltas = _paired(cells.get((stage, rung, evaluation, which)), cells.get((stage, above, evaluation, which)))
+            theirs = cells.get((stage, above, evaluation, which))
+            # a rung that flies draws is paired with its parent's networks flown by draws where
+            # they were (make pilot-sampling), so that the difference is the rung's change alone
+            if rung in drawn and above not in drawn and (stage, above, f"{evaluation}_sample", which) in cells:
+                theirs = cells[(stage, above, f"{evaluation}_sample", which)]
+            deltas = _paired(cells.get((stage, rung, evaluation, which)), theirs)
             if deltas is not None:
-                rows.append({"rung vs the one it changes": f"{rung} vs {above}",
-                             "flown": "actor + filter" if evaluation == "pilot" else "actor alone", **deltas[1]})
+                flown = "actor + filter" if evaluation == "pilot" else "actor alone"
+                if rung in drawn:
+                    flown = FLOWN[f"{evaluation}_sample"]
+                rows.append({"rung vs the one it changes": f"{rung} vs {above}", "flown": flown, **deltas[1]})
     return markdown_table(rows, ["rung vs the one it changes", "flown", *(f"Δ{m}" for m in METRICS)])
 
 
@@ -672,7 +737,22 @@ def _pace_line(found: dict[str, Any]) -> str:
             f"{found['greedy_landed_m_per_slot']:.1f}), {found['landed_held_slots_mean']:.0f} slots of them held "
             f"(chunks of {found['chunk']} slots with under {STALL_STILL_M:.0f} m of net motion; greedy's "
             f"{found['greedy_landed_held_slots_mean']:.0f}). A slot costs 294-337 J whatever the DCU does, so the "
-            "energy of a mission is its slots.")
+            "energy of a mission is its slots." + _pace_parts(found))
+
+
+def _pace_parts(found: dict[str, Any]) -> str:
+    """Where the pace went, where ``stalls`` recorded it: over residential zones (speed limit 5 m/s)
+    and elsewhere, and the actor's wished speed against the one the filter let it fly."""
+    if "landed_rz_slots_mean" not in found:
+        return ""
+    out = (f" Of those slots, {found['landed_rz_slots_mean']:.0f} start over a residential zone, flown at "
+           f"{found['landed_rz_m_per_slot']:.1f} m a slot (greedy: {found['greedy_landed_rz_slots_mean']:.0f} at "
+           f"{found['greedy_landed_rz_m_per_slot']:.1f}; the limit is 5 m/s); elsewhere "
+           f"{found['landed_elsewhere_m_per_slot']:.1f} m a slot (greedy's {found['greedy_landed_elsewhere_m_per_slot']:.1f}).")
+    if "landed_wish_speed_mean" in found:
+        out += (f" Its actor wishes {found['landed_wish_speed_mean']:.1f} m/s on average over those slots and the "
+                f"filter lets it fly {found['landed_speed_mean']:.1f}.")
+    return out
 
 
 def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot_drawn",
