@@ -544,15 +544,23 @@ RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
 # box's edge, where the tanh saturates and the entropy is lowest, so the default target holds the
 # policy off it. Does a lower target let the actor fly faster by draws?
 RUNG_SHARP = +exp=pilot_drawn algo.target_entropy=-6
+# where the committed pilot's time goes (make pilot-stalls, and on the selection set): a quarter of its
+# slots lie within 5 m of a building or NFZ, where its wish points into the wall and the filter slides
+# it along at 5 m/s; greedy never comes that near. Two prices of that:
+# the filter's correction priced in the reward on the committed pilot's recipe (the wish stored, so
+# the critic sees what pressing into a wall costs)
+RUNG_DRAWN_PENALTY = +exp=pilot_drawn safety_filter.penalty=1.0
+# the proximity ramps of buildings and NFZs (sigma3, sigma4) three times the paper's
+RUNG_DRAWN_CLEAR = +exp=pilot_drawn 'env.reward.sigma=[8.0,0.4,1.2,1.2,0.6,0.4,0.6,1.0,0.01]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-sharp pilot-verdict pilot-heldout pilot-export pilot-references pilot-records pilot-sampling \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-verdict pilot-heldout pilot-export pilot-references pilot-records pilot-sampling \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
 	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner \
-	pilot-screen-sharp
+	pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -590,6 +598,10 @@ pilot-screen-learner: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_LEARNER) experiment.method=saclagln_ego_shaped
 pilot-screen-sharp: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_SHARP) experiment.method=pilot_drawn_sharp
+pilot-screen-drawn-penalty: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_DRAWN_PENALTY) experiment.method=pilot_drawn_penalty
+pilot-screen-drawn-clear: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_DRAWN_CLEAR) experiment.method=pilot_drawn_clear
 # the verdict: a recipe fixed before these runs (PILOT_RECIPE) on the verdict seeds at the
 # paper's budget, each flown on the held-out set through its filter and alone; seed 0's pilot exported
 PILOT_VERDICT_FRAMES ?= 2500000

@@ -223,12 +223,14 @@ def test_mission_pace_by_hand():
     assert math.isnan(nobody["landed_m_per_slot"])
 
 
-def test_mission_pace_over_residential_zones_by_hand():
-    """The flights of test_mission_pace_by_hand with row 0's slots 2 and 3 (from (0, 10) and
-    (0, 20)) starting over an RZ: 2 RZ slots for row 0, none for row 2, so (2 + 0) / 2 = 1 a
-    landed mission; the moves that start over it: only slot 2's, 10 m (slot 3 is row 0's last, its
-    move unrecorded): 10 m a slot; elsewhere row 0's 0 and 10 m and row 2's 5 and 5 m: 20 m / 4 =
-    5 m a slot. The unlanded row 1, over an RZ throughout, counts nowhere."""
+def test_mission_pace_by_place_by_hand():
+    """The flights of test_mission_pace_by_hand. Row 0's slots 2 and 3 (from (0, 10) and (0, 20))
+    start over an RZ, its slots 1 and 2 near a wall: slot 2 goes to the first place named, the RZ.
+    So RZ: 2 slots for row 0, none for row 2, (2 + 0) / 2 = 1 a landed mission; of their moves only
+    slot 2's is recorded (slot 3 is row 0's last): 10 m a slot. Near a wall: slot 1 (10 m), 0.5 a
+    mission, 10 m a slot. Elsewhere: row 0's slot 0 (0 m) and row 2's three slots, moves 5 and 5
+    m: (1 + 3) / 2 = 2 a mission, 10 m / 3 moves. The unlanded row 1, marked everywhere, counts
+    nowhere."""
     import torch
 
     from uavlae.experiments.pilot import landed_mean, mission_pace
@@ -239,19 +241,23 @@ def test_mission_pace_over_residential_zones_by_hand():
         [[0.0, 10.0], [0.0, 0.0], [6.0, 8.0]],
         [[0.0, 20.0], [0.0, 0.0], [100.0, 100.0]],
     ])
-    over_rz = torch.tensor([[False, True, False], [False, True, False], [True, True, False], [True, True, False]])
+    rz = torch.tensor([[False, True, False], [False, True, False], [True, True, False], [True, True, False]])
+    wall = torch.tensor([[False, True, False], [True, True, False], [True, True, False], [False, True, False]])
     lengths, landed = torch.tensor([4, 4, 3]), torch.tensor([True, False, True])
-    found = mission_pace(positions, lengths, landed, chunk=2, still=5.0, over_rz=over_rz)
-    assert found["landed_rz_slots_mean"] == 1.0
-    assert found["landed_rz_m_per_slot"] == pytest.approx(10.0)
-    assert found["landed_elsewhere_m_per_slot"] == pytest.approx(5.0)
+    found = mission_pace(positions, lengths, landed, chunk=2, still=5.0, places={"rz": rz, "near_wall": wall})
+    assert found["landed_rz_slots_mean"] == 1.0 and found["landed_rz_m_per_slot"] == pytest.approx(10.0)
+    assert found["landed_near_wall_slots_mean"] == 0.5 and found["landed_near_wall_m_per_slot"] == pytest.approx(10.0)
+    assert found["landed_elsewhere_slots_mean"] == 2.0
+    assert found["landed_elsewhere_m_per_slot"] == pytest.approx(10 / 3)
+    # every slot somewhere: the places add up to the mission
+    assert sum(found[f"landed_{n}_slots_mean"] for n in ("rz", "near_wall", "elsewhere")) == found["landed_slots_mean"]
     # a speed a slot: row 0 flies 1, 2, 3, 4 m/s, row 2 (3 slots) 6 m/s, row 1 (unlanded) 100:
     # (1 + 2 + 3 + 4 + 6 + 6 + 6) / 7 = 4
     speeds = torch.tensor([[1.0, 100.0, 6.0], [2.0, 100.0, 6.0], [3.0, 100.0, 6.0], [4.0, 100.0, 100.0]])
     assert landed_mean(speeds, lengths, landed) == pytest.approx(4.0)
     assert math.isnan(landed_mean(speeds, lengths, torch.tensor([False, False, False])))
-    nobody = mission_pace(positions, lengths, torch.tensor([False, False, False]), over_rz=over_rz)
-    assert math.isnan(nobody["landed_rz_m_per_slot"])
+    nobody = mission_pace(positions, lengths, torch.tensor([False, False, False]), places={"rz": rz})
+    assert math.isnan(nobody["landed_rz_m_per_slot"]) and math.isnan(nobody["landed_elsewhere_slots_mean"])
 
 
 def test_stall_summary_by_hand():
@@ -298,13 +304,18 @@ def test_the_cards_stall_and_pace_lines():
         "Its landed missions took 330 slots on average (greedy's 233): a path of 2357 m (greedy's 2138) at 7.1 m a "
         "slot (greedy's 9.2), 22 slots of them held (chunks of 50 slots with under 20 m of net motion; greedy's 3).")
     assert "residential" not in _pace_line(found)  # a stalls.json written before the split says nothing of it
-    split = {**found, "landed_rz_slots_mean": 53.04, "landed_rz_m_per_slot": 3.81, "landed_elsewhere_m_per_slot": 7.74,
-             "greedy_landed_rz_slots_mean": 21.6, "greedy_landed_rz_m_per_slot": 4.67,
-             "greedy_landed_elsewhere_m_per_slot": 9.75, "landed_wish_speed_mean": 8.14, "landed_speed_mean": 6.97}
+    split = {**found, "landed_rz_slots_mean": 37.74, "landed_rz_m_per_slot": 4.28, "landed_near_wall_slots_mean": 60.2,
+             "landed_near_wall_m_per_slot": 5.16, "landed_elsewhere_slots_mean": 188.6,
+             "landed_elsewhere_m_per_slot": 9.21, "greedy_landed_rz_slots_mean": 29.16,
+             "greedy_landed_rz_m_per_slot": 4.70, "greedy_landed_near_wall_slots_mean": 0.0,
+             "greedy_landed_near_wall_m_per_slot": math.nan, "greedy_landed_elsewhere_slots_mean": 197.9,
+             "greedy_landed_elsewhere_m_per_slot": 9.73, "landed_wish_speed_mean": 8.57, "landed_speed_mean": 7.65}
     assert _pace_line(split).endswith(
-        " Of those slots, 53 start over a residential zone, flown at 3.8 m a slot (greedy: 22 at 4.7; the limit is "
-        "5 m/s); elsewhere 7.7 m a slot (greedy's 9.8). Its actor wishes 8.1 m/s on average over those slots and the "
-        "filter lets it fly 7.0.")
+        " Of those slots, 38 at 4.3 m a slot (greedy: 29 at 4.7 m a slot) start over a residential zone (limit 5 m/s), "
+        "60 at "
+        "5.2 m a slot (greedy: none) within 5 m of a building or no-fly zone, and 189 at 9.2 m a slot (greedy: "
+        "198 at 9.7 m a slot) elsewhere. Its actor wishes 8.6 m/s on average over those slots and the filter lets it fly 7.7.")
+
     held = {**found, "unlanded": 4, "unlanded_at_obstacle": 3, "unlanded_held": 2, "unlanded_filter_change_median": 1.0}
     assert "of its 4 episodes of 32 that did not land, 3 ended within 3 m" in _stalls_line(held)
     assert _stalls_line(held).endswith("the filter keeps it out.")  # 1.0 > 2 x 0.19

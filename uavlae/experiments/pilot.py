@@ -276,7 +276,7 @@ HELD_CHUNK = 50  # slots: a landed mission's time is cut into chunks this long .
 
 
 def mission_pace(positions: Any, lengths: Any, landed: Any, chunk: int = HELD_CHUNK,
-                 still: float = STALL_STILL_M, over_rz: Any = None) -> dict[str, float]:
+                 still: float = STALL_STILL_M, places: dict[str, Any] | None = None) -> dict[str, float]:
     """Where a landed mission's time goes. Each landed row's flight ([T, B, 2] ``positions``,
     the position before each of its ``lengths`` slots): its slots, its path (the sum of the
     moves between those positions) and so its pace (path / slots, pooled over the landed rows),
@@ -285,20 +285,20 @@ def mission_pace(positions: Any, lengths: Any, landed: Any, chunk: int = HELD_CH
     held. Every slot costs 294-337 J whatever the DCU does (docs/model.md §4), so a mission's
     energy is its slots: a longer path, a slower pace or time held.
 
-    With ``over_rz`` ([T, B] bool: the slot starts over a residential zone, where the speed limit
-    is half of v_max), also the slots a landed mission spends over RZs and the pace over them and
-    elsewhere, each pooled over the moves that start there (a row's last slot has no recorded
-    move)."""
+    With ``places`` (name -> [T, B] bool: where each slot starts, e.g. over a residential zone),
+    each slot goes to the first place it starts in, else to ``elsewhere``; for each, the slots a
+    landed mission spends there and the pace of the moves that start there (a row's last slot
+    has no recorded move)."""
     import torch
 
     rows = torch.nonzero(landed).flatten().tolist()
-    rz_keys = ("landed_rz_slots_mean", "landed_rz_m_per_slot", "landed_elsewhere_m_per_slot")
+    names = [*places, "elsewhere"] if places else []
+    place_keys = [f"landed_{n}_{k}" for n in names for k in ("slots_mean", "m_per_slot")]
     if not rows:
         return {"landed_slots_mean": math.nan, "landed_path_m_mean": math.nan, "landed_m_per_slot": math.nan,
-                "landed_held_slots_mean": math.nan, "chunk": chunk,
-                **({k: math.nan for k in rz_keys} if over_rz is not None else {})}
+                "landed_held_slots_mean": math.nan, "chunk": chunk, **{k: math.nan for k in place_keys}}
     held, paths = [], []
-    rz_slots, rz_moves, rz_path, else_moves, else_path = 0, 0, 0.0, 0, 0.0
+    slots_in, moves_in, path_in = defaultdict(int), defaultdict(int), defaultdict(float)
     for i in rows:
         n_slots = int(lengths[i])
         p = positions[:n_slots, i]
@@ -307,21 +307,21 @@ def mission_pace(positions: Any, lengths: Any, landed: Any, chunk: int = HELD_CH
         starts = torch.arange(n_slots // chunk) * chunk
         net = torch.linalg.vector_norm(p[starts + chunk - 1] - p[starts], dim=-1)
         held.append(int((net < still).sum()) * chunk)
-        if over_rz is not None:
-            rz = over_rz[:n_slots, i].bool()
-            rz_slots += int(rz.sum())
-            rz_moves += int(rz[:-1].sum())
-            rz_path += float(moves[rz[:-1]].sum())
-            else_moves += int((~rz[:-1]).sum())
-            else_path += float(moves[~rz[:-1]].sum())
+        if places:
+            free = torch.ones(n_slots, dtype=torch.bool)
+            for n in names:
+                here = free.clone() if n == "elsewhere" else places[n][:n_slots, i].bool() & free
+                free &= ~here
+                slots_in[n] += int(here.sum())
+                moves_in[n] += int(here[:-1].sum())
+                path_in[n] += float(moves[here[:-1]].sum())
     slots = [int(lengths[i]) for i in rows]
     out = {"landed_slots_mean": sum(slots) / len(rows), "landed_path_m_mean": sum(paths) / len(rows),
            "landed_m_per_slot": sum(paths) / sum(slots), "landed_held_slots_mean": sum(held) / len(rows),
            "chunk": chunk}
-    if over_rz is not None:
-        out.update({"landed_rz_slots_mean": rz_slots / len(rows),
-                    "landed_rz_m_per_slot": rz_path / rz_moves if rz_moves else math.nan,
-                    "landed_elsewhere_m_per_slot": else_path / else_moves if else_moves else math.nan})
+    for n in names:
+        out[f"landed_{n}_slots_mean"] = slots_in[n] / len(rows)
+        out[f"landed_{n}_m_per_slot"] = path_in[n] / moves_in[n] if moves_in[n] else math.nan
     return out
 
 
@@ -360,8 +360,14 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
     def speed(action: Any) -> Any:  # m/s, as the env flies an action (docs/model.md §2)
         return torch.linalg.vector_norm(ph.action_to_velocity(action, v_max), dim=-1)
 
+    near = cfg.safety.d_min  # where the proximity ramps r3 / r4 are at their full weight (docs/model.md §7)
+
     def where(state: Any, into: list[Any]) -> None:
-        into.append(ph.point_rect_distance(state["position"], state["rz"], state["rz_mask"]).le(0).any(-1))
+        p = state["position"]
+        rz = ph.point_rect_distance(p, state["rz"], state["rz_mask"]).le(0).any(-1)
+        walls = torch.cat([ph.point_rect_distance(p, state["bz"], state["bz_mask"]),
+                           ph.point_rect_distance(p, state["nfz"], state["nfz_mask"])], -1)
+        into.append(torch.stack([rz, walls.lt(near).any(-1)]))
 
     def record(state: Any, action: Any) -> None:
         wish = alone(state)
@@ -387,11 +393,15 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
     parts = [fly.scenario_tensors(d, cfg) for d in scenarios]
     scen = {k: torch.cat([p[k] for p in parts]) for k in ("bz", "bz_mask", "nfz", "nfz_mask")}
     lengths, landed = torch.tensor(flown["length"]), torch.tensor(flown["landed"])
+    def places(marks: list[Any]) -> dict[str, Any]:
+        m = torch.stack(marks)  # [T, 2, B]
+        return {"rz": m[:, 0], "near_wall": m[:, 1]}
+
     g_pace = mission_pace(torch.stack(greedy_positions), torch.tensor(by_greedy["length"]),
-                          torch.tensor(by_greedy["landed"]), over_rz=torch.stack(greedy_rz))
+                          torch.tensor(by_greedy["landed"]), places=places(greedy_rz))
     return {**stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
                             [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window),
-            **mission_pace(torch.stack(positions), lengths, landed, over_rz=torch.stack(over_rz)),
+            **mission_pace(torch.stack(positions), lengths, landed, places=places(over_rz)),
             # the actor's wished speed and the speed the filter let it fly, over the landed slots
             "landed_wish_speed_mean": landed_mean(torch.stack(wishes), lengths, landed),
             "landed_speed_mean": landed_mean(torch.stack(speeds), lengths, landed),
@@ -428,7 +438,7 @@ LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sa
           "sac_ego_filter_shaped_teach_all_labels_strong",
           "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide",
           "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped",
-          "pilot_drawn_sharp", *RECIPES)
+          "pilot_drawn_sharp", "pilot_drawn_penalty", "pilot_drawn_clear", *RECIPES)
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -510,7 +520,9 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "sac_ego_filter_shaped_teach_all_labels_wide": "sac_ego_filter_shaped_teach_all_labels",
           "sac_ego_filter_shaped_teach_all_labels_wide_economy": "sac_ego_filter_shaped_teach_all_labels_wide",
           "saclag_ego_shaped": "sac_ego_filter_shaped",
-          "pilot_drawn_sharp": "sac_ego_filter_shaped_wish_teach_all"}
+          "pilot_drawn_sharp": "sac_ego_filter_shaped_wish_teach_all",
+          "pilot_drawn_penalty": "sac_ego_filter_shaped_wish_teach_all",
+          "pilot_drawn_clear": "sac_ego_filter_shaped_wish_teach_all"}
 
 
 def _paired(a: list[dict[str, str]] | None, b: list[dict[str, str]] | None) -> tuple[list[int], dict[str, str]] | None:
@@ -741,14 +753,21 @@ def _pace_line(found: dict[str, Any]) -> str:
 
 
 def _pace_parts(found: dict[str, Any]) -> str:
-    """Where the pace went, where ``stalls`` recorded it: over residential zones (speed limit 5 m/s)
-    and elsewhere, and the actor's wished speed against the one the filter let it fly."""
-    if "landed_rz_slots_mean" not in found:
+    """Where the pace went, where ``stalls`` recorded it: over residential zones (speed limit 5
+    m/s), within d_min of a building or NFZ, and elsewhere; and the actor's wished speed against
+    the one the filter let it fly."""
+    if "landed_near_wall_slots_mean" not in found:
         return ""
-    out = (f" Of those slots, {found['landed_rz_slots_mean']:.0f} start over a residential zone, flown at "
-           f"{found['landed_rz_m_per_slot']:.1f} m a slot (greedy: {found['greedy_landed_rz_slots_mean']:.0f} at "
-           f"{found['greedy_landed_rz_m_per_slot']:.1f}; the limit is 5 m/s); elsewhere "
-           f"{found['landed_elsewhere_m_per_slot']:.1f} m a slot (greedy's {found['greedy_landed_elsewhere_m_per_slot']:.1f}).")
+
+    def spent(prefix: str, name: str) -> str:
+        n, pace = found[f"{prefix}landed_{name}_slots_mean"], found[f"{prefix}landed_{name}_m_per_slot"]
+        return f"{n:.0f} at {pace:.1f} m a slot" if math.isfinite(pace) else "none"
+
+    def part(name: str) -> str:
+        return f"{spent('', name)} (greedy: {spent('greedy_', name)})"
+
+    out = (f" Of those slots, {part('rz')} start over a residential zone (limit 5 m/s), {part('near_wall')} "
+           f"within 5 m of a building or no-fly zone, and {part('elsewhere')} elsewhere.")
     if "landed_wish_speed_mean" in found:
         out += (f" Its actor wishes {found['landed_wish_speed_mean']:.1f} m/s on average over those slots and the "
                 f"filter lets it fly {found['landed_speed_mean']:.1f}.")
