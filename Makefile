@@ -554,7 +554,7 @@ RUNG_DRAWN_PENALTY = +exp=pilot_drawn safety_filter.penalty=1.0
 RUNG_DRAWN_CLEAR = +exp=pilot_drawn 'env.reward.sigma=[8.0,0.4,1.2,1.2,0.6,0.4,0.6,1.0,0.01]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-verdict pilot-heldout pilot-export pilot-references pilot-records pilot-sampling \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-verdict pilot-heldout pilot-export pilot-export-seeds pilot-references pilot-records pilot-sampling \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
@@ -616,7 +616,7 @@ comma := ,
 pilot-verdict: $(STAMP)
 	$(PILOT) experiment.point=verdict +exp=$(PILOT_RECIPE) seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
 		trainer.replay_capacity=$(PILOT_VERDICT_FRAMES) experiment.method=$(PILOT_RECIPE)
-	$(MAKE) pilot-heldout pilot-export
+	$(MAKE) pilot-heldout pilot-export pilot-export-seeds
 # the pilot of a verdict run: its best selection-set evaluation when it kept one (trainer.keep_best),
 # else its end; the held-out set judges it
 PILOT_CKPT = c=$$d/checkpoints/best.pt; [ -f $$c ] || c=$$d
@@ -631,6 +631,13 @@ pilot-export: $(STAMP)
 	d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed0; $(PILOT_CKPT); \
 		$(BIN)/python -m uavlae.export checkpoint=$$c out=results/pilot/pilot.pt2
 	$(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --all | tail -1
+# every verdict seed's pilot, kept beside the records (results/pilot/pilots/<recipe>_seed<N>.pt2, about
+# 0.6 MB each): the runs' folders are not kept, and a diagnosis of the verdict (pilot stalls
+# --actor ...) needs all of its pilots, not only the committed one
+pilot-export-seeds: $(STAMP)
+	mkdir -p results/pilot/pilots
+	for s in $(subst $(comma), ,$(PILOT_SEEDS)); do d=$(PILOT_EXP_ROOT)/pilot/verdict/$(PILOT_RECIPE)/seed$$s; $(PILOT_CKPT); \
+		$(BIN)/python -m uavlae.export checkpoint=$$c out=results/pilot/pilots/$(PILOT_RECIPE)_seed$$s.pt2 || exit 1; done
 pilot-references: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot
 pilot-records: $(STAMP)
