@@ -559,7 +559,7 @@ RUNG_DRAWN_CLEAR = +exp=pilot_drawn 'env.reward.sigma=[8.0,0.4,1.2,1.2,0.6,0.4,0
 RUNG_DRAWN_CLEARER = +exp=pilot_drawn 'env.reward.sigma=[8.0,0.4,2.4,2.4,0.6,0.4,0.6,1.0,0.01]'
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-verdict pilot-heldout pilot-export pilot-export-seeds pilot-references pilot-records pilot-sampling \
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-verdict pilot-heldout pilot-export pilot-export-seeds pilot-references pilot-records pilot-sampling pilot-screen-wide \
 	pilot-report pilot-stalls pilot-card
 pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
@@ -621,6 +621,9 @@ HELDOUT = results/pilot/heldout_set_256.json
 # a second judging set, drawn after the verdict's recipe was fixed (the held-out set had been flown
 # with tuning-seed checkpoints while recipes were chosen); flown by nothing before the verdict runs
 CONFIRM = results/pilot/confirm_set_256.json
+# the screening set: the kept pilots of screening runs compared on 256 scenarios that chose none of
+# them (each run keeps the best of its evaluations on the 32 selection scenarios); it judges no verdict
+SCREENSET = results/pilot/screen_set_256.json
 comma := ,
 pilot-verdict: $(STAMP)
 	$(PILOT) experiment.point=verdict +exp=$(PILOT_RECIPE) seed=$(PILOT_SEEDS) trainer.total_frames=$(PILOT_VERDICT_FRAMES) \
@@ -662,6 +665,15 @@ pilot-sampling: $(STAMP)
 		$(BIN)/python -m uavlae.evaluate checkpoint=$$d trainer.eval_set=$(PILOT_SELECTION) trainer.eval_actor=sample \
 			safety_filter.mode=off experiment.reuse=true experiment.eval_dir=$$d/evaluate/selection_alone_sample \
 			trainer.eval_plots=0 || exit 1; done
+# every finished screening run that kept a pilot (trainer.keep_best) flies it on the screening set,
+# through its filter and alone, as it flies (its own trainer.eval_actor); then the references on it
+pilot-screen-wide: $(STAMP)
+	for d in $(PILOT_EXP_ROOT)/pilot/screen/*/seed*; do [ -f $$d/final_metrics.json ] && [ -f $$d/checkpoints/best.pt ] || continue; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d/checkpoints/best.pt trainer.eval_set=$(SCREENSET) experiment.reuse=true \
+			experiment.eval_dir=$$d/evaluate/screening_pilot trainer.eval_plots=0 || exit 1; \
+		$(BIN)/python -m uavlae.evaluate checkpoint=$$d/checkpoints/best.pt trainer.eval_set=$(SCREENSET) experiment.reuse=true \
+			safety_filter.mode=off experiment.eval_dir=$$d/evaluate/screening_alone trainer.eval_plots=0 || exit 1; done
+	$(BIN)/python -m uavlae.experiments.pilot references --out results/pilot --set screening
 # where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
 pilot-stalls: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
@@ -671,11 +683,13 @@ pilot-report: $(STAMP)
 pilot-card: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot card results/pilot --recipe uavlae/conf/exp/$(PILOT_RECIPE).yaml \
 		--rung $(PILOT_RECIPE)
-# the verdict's judging sets: 256 scenarios of SPEC's distribution each, from seeds used nowhere else
-# (held-out 90210, confirmation 8675309); committed, so this only rewrites the same files
+# the verdict's judging sets and the screening set: 256 scenarios of SPEC's distribution each, from
+# seeds used nowhere else (held-out 90210, confirmation 8675309, screening 31337); committed, so this
+# only rewrites the same files
 .PHONY: pilot-heldout-set
 pilot-heldout-set: $(STAMP)
-	rm -f $(HELDOUT) $(CONFIRM)
+	rm -f $(HELDOUT) $(CONFIRM) $(SCREENSET)
 	$(BIN)/python -c "from uavlae.evaluate import load_or_make_eval_set; from uavlae.envs import make_env_config; \
 		load_or_make_eval_set(make_env_config(None), '$(HELDOUT)', 256, 90210, sample=True); \
-		load_or_make_eval_set(make_env_config(None), '$(CONFIRM)', 256, 8675309, sample=True)"
+		load_or_make_eval_set(make_env_config(None), '$(CONFIRM)', 256, 8675309, sample=True); \
+		load_or_make_eval_set(make_env_config(None), '$(SCREENSET)', 256, 31337, sample=True)"

@@ -109,9 +109,11 @@ def test_a_rung_that_flies_draws_is_paired_with_its_parents_draws(tmp_path):
         for seed in (100, 101):
             runs.append({"stage": "screen", "rung": rung, "seed": seed, "frames": 1000, "wall_s": 60.0,
                          "eval_actor": mode})
-            for ev, got in cells:
+            # and each run's kept pilot on the screening set: plain's lands in neither scenario
+            wide = (("pilot", "screening", (0, 0) if rung == "plain" else (1, 1)),)
+            for ev, which, got in (*((ev, "selection", got) for ev, got in cells), *wide):
                 for n in (0, 1):
-                    eps.append({"stage": "screen", "rung": rung, "seed": seed, "evaluation": ev, "set": "selection",
+                    eps.append({"stage": "screen", "rung": rung, "seed": seed, "evaluation": ev, "set": which,
                                 "scenario": n, "data_collected": got[n], "data_total": 1, "collided": False,
                                 "landed": bool(got[n]), "rz_speeding": False, "energy_used": 1.0,
                                 "energy_total": 10.0, "boundary_exit": False, "length": 10})
@@ -123,6 +125,9 @@ def test_a_rung_that_flies_draws_is_paired_with_its_parents_draws(tmp_path):
            "0.500 [0.000, 1.000] |" in text
     assert "| drawn | 100 101 | actor (a draw) + filter | 1.000 [1.000, 1.000] |" in text
     assert "| plain | 100 101 | actor + filter | 1.000 [1.000, 1.000] |" in text
+    # the screening set has its own section, its pairs on its own scenarios: ΔDCR = ΔSLR = +1
+    section = text.split("## screen: the screening set (results/pilot/screen_set_256.json), each run's kept pilot")[1]
+    assert "| drawn vs plain | actor (a draw) + filter | 1.000 [1.000, 1.000] |" in section.split("\n## ")[0]
 
 
 def test_model_card_from_records_alone(tmp_path):

@@ -56,7 +56,9 @@ CURVE_SCALARS = tuple((f"eval/{m}", m) for m in METRICS) + tuple((f"eval/actor/{
     ("safety/intervention_rate", "train_intervention"))
 # a verdict run flown on the sets that judge it: <run>/evaluate/<folder> -> (evaluation, set)
 HELDOUT = {"heldout_pilot": ("pilot", "heldout"), "heldout_alone": ("alone", "heldout"),
-           "confirm_pilot": ("pilot", "confirm"), "confirm_alone": ("alone", "confirm")}
+           "confirm_pilot": ("pilot", "confirm"), "confirm_alone": ("alone", "confirm"),
+           # a screening run's kept pilot on the screening set (make pilot-screen-wide)
+           "screening_pilot": ("pilot", "screening"), "screening_alone": ("alone", "screening")}
 # the same networks flown by draws from their policy (trainer.eval_actor=sample; make pilot-sampling):
 # <run>/evaluate/<folder> -> (evaluation, set)
 SAMPLED = {"selection_sample": ("pilot_sample", "selection"), "selection_alone_sample": ("alone_sample", "selection"),
@@ -160,14 +162,18 @@ def write_records(root: Path, out: Path) -> dict[str, int]:
 
 # the selection set chooses; the held-out set (seed 90210) judges; the confirmation set (seed 8675309)
 # judges again on scenarios drawn after the verdict's recipe was fixed and flown by nothing before its
-# checkpoints: the held-out set had been flown with tuning-seed checkpoints while the recipe was chosen
-SETS = {"selection": Path("results/eval_set_32.json"), "heldout": Path("results/pilot/heldout_set_256.json"),
-        "confirm": Path("results/pilot/confirm_set_256.json")}
+# checkpoints: the held-out set had been flown with tuning-seed checkpoints while the recipe was chosen.
+# The screening set (seed 31337) compares the pilots that screening runs kept (each the best of its
+# evaluations on the 32 selection scenarios) on 256 scenarios that chose none of them, so that a
+# recipe is carried to a verdict on more than 32 scenarios a seed; it judges no verdict.
+SETS = {"selection": Path("results/eval_set_32.json"), "screening": Path("results/pilot/screen_set_256.json"),
+        "heldout": Path("results/pilot/heldout_set_256.json"), "confirm": Path("results/pilot/confirm_set_256.json")}
 # how the report and the card name each set
 SET_TITLES = {"selection": "the selection set (results/eval_set_32.json)",
+              "screening": "the screening set (results/pilot/screen_set_256.json), each run's kept pilot",
               "heldout": "the held-out set (results/pilot/heldout_set_256.json)",
               "confirm": "the confirmation set (results/pilot/confirm_set_256.json)"}
-SET_NAMES = {"selection": "selection", "heldout": "held-out", "confirm": "confirmation"}
+SET_NAMES = {"selection": "selection", "screening": "screening", "heldout": "held-out", "confirm": "confirmation"}
 EVAL_SEED = 12345  # trainer.eval_seed: the OU stream every run's evaluation flies
 
 
