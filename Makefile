@@ -538,14 +538,14 @@ RUNG_LABELS_WIDE_ECONOMY = $(RUNG_LABELS_WIDE) 'env.reward.sigma=[8.0,0.4,0.4,0.
 RUNG_LAG = +exp=sac_lag env.obs_frame=ego safety_filter.mode=deploy env.reward.progress_weight=8.0 \
 	env.reward.progress_metric=geodesic env.cost.rz_speeding=1.0
 RUNG_LEARNER = $(RUNG_LAG) algo.layer_norm=true 'algo.hidden=[256,256]'
+# the committed pilot's recipe itself on the tuning seeds: the rungs below change it, and are paired
+# with it flown as it flies (by draws, its best evaluation kept)
+RUNG_DRAWN = +exp=pilot_drawn
 # that recipe with three times SAC's default entropy target (-6 against -act_dim = -2):
 # its landed missions fly 7 m a slot against greedy's 9 while its actor's mean action averages
 # |a| = 0.3, its speed coming from wide draws; full speed along an axis needs a component at the
 # box's edge, where the tanh saturates and the entropy is lowest, so the default target holds the
 # policy off it. Does a lower target let the actor fly faster by draws?
-# the committed pilot's recipe itself on the tuning seeds: the rungs below change it, and are paired
-# with it flown as it flies (by draws, its best evaluation kept)
-RUNG_DRAWN = +exp=pilot_drawn
 RUNG_SHARP = +exp=pilot_drawn algo.target_entropy=-6
 # where the committed pilot's time goes (make pilot-stalls, and on the selection set): a quarter of its
 # slots lie within 5 m of a building or NFZ, where its wish points into the wall and the filter slides

@@ -360,7 +360,7 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
     scenarios = read_json(scenario_set)
     from uavlae.envs import physics as ph
 
-    positions, changes, over_rz, speeds, wishes = [], [], [], [], []
+    positions, changes, marks, speeds, wishes = [], [], [], [], []
     v_max = cfg.motion.v_max
 
     def speed(action: Any) -> Any:  # m/s, as the env flies an action (docs/model.md §2)
@@ -368,7 +368,7 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
 
     near = cfg.safety.d_min  # where the proximity ramps r3 / r4 are at their full weight (docs/model.md §7)
 
-    def where(state: Any, into: list[Any]) -> None:
+    def where(state: Any, into: list[Any]) -> None:  # [2, B]: over an RZ, within d_min of a wall
         p = state["position"]
         rz = ph.point_rect_distance(p, state["rz"], state["rz_mask"]).le(0).any(-1)
         walls = torch.cat([ph.point_rect_distance(p, state["bz"], state["bz_mask"]),
@@ -379,17 +379,17 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
         wish = alone(state)
         positions.append(state["position"].clone())
         changes.append(torch.linalg.vector_norm(action - wish, dim=-1))
-        where(state, over_rz)
+        where(state, marks)
         speeds.append(speed(action))
         wishes.append(speed(wish))
 
     from uavlae.policies.greedy import GreedyPolicy
 
-    greedy, greedy_positions, greedy_rz = GreedyPolicy(cfg), [], []
+    greedy, greedy_positions, greedy_marks = GreedyPolicy(cfg), [], []
 
     def record_greedy(state: Any, _: Any) -> None:
         greedy_positions.append(state["position"].clone())
-        where(state, greedy_rz)
+        where(state, greedy_marks)
 
     with torch.no_grad():
         flown = fly.fly_batch(fly.policy_of(module, meta, cfg, True), cfg, scenarios, seed=int(meta.get("eval_seed", 0)),
@@ -404,10 +404,10 @@ def stalls(actor: Path, scenario_set: Path, window: int = 200) -> dict[str, floa
         return {"rz": m[:, 0], "near_wall": m[:, 1]}
 
     g_pace = mission_pace(torch.stack(greedy_positions), torch.tensor(by_greedy["length"]),
-                          torch.tensor(by_greedy["landed"]), places=places(greedy_rz))
+                          torch.tensor(by_greedy["landed"]), places=places(greedy_marks))
     return {**stall_summary(torch.stack(positions), torch.stack(changes), lengths, landed,
                             [(scen["bz"], scen["bz_mask"]), (scen["nfz"], scen["nfz_mask"])], window),
-            **mission_pace(torch.stack(positions), lengths, landed, places=places(over_rz)),
+            **mission_pace(torch.stack(positions), lengths, landed, places=places(marks)),
             # the actor's wished speed and the speed the filter let it fly, over the landed slots
             "landed_wish_speed_mean": landed_mean(torch.stack(wishes), lengths, landed),
             "landed_speed_mean": landed_mean(torch.stack(speeds), lengths, landed),
@@ -486,12 +486,23 @@ def _best_on_the_way(curves: list[dict[str, str]], stage: str, rung: str) -> str
     return "; ".join(out)
 
 
+def _drawn(runs: list[dict[str, str]], stage: str) -> set[str]:
+    """The rungs of a stage whose runs fly their own evaluations by draws (trainer.eval_actor=sample)."""
+    return {r["rung"] for r in runs if r["stage"] == stage and r.get("eval_actor") == "sample"}
+
+
+def _flown(evaluation: str, by_draws: bool) -> str:
+    """What flew in a cell: a drawn rung's own evaluations (pilot, alone) are its draws."""
+    return FLOWN[f"{evaluation}_sample" if by_draws and evaluation in ("pilot", "alone") else evaluation]
+
+
 def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dict[str, str]], which: str,
            ecr: float | None) -> list[str]:
     ttp, best = "time to a pilot", "best evaluation: DCR / SLR at frames"
     columns = ["rung", "seeds", "flown", *METRICS, "filter acts (train / eval)", "wall (min)",
                *([ttp, best] if which == "selection" else [])]
     rows = []
+    drawn = _drawn(runs, stage)
     for rung in _order(runs, stage):
         rr = [r for r in runs if r["stage"] == stage and r["rung"] == rung]
         wall = sum(float(r["wall_s"] or 0) for r in rr) / max(len(rr), 1) / 60
@@ -503,10 +514,8 @@ def _table(stage: str, runs: list[dict[str, str]], cells: dict, curves: list[dic
                 continue
             g = grid_from_rows(episodes)
             pilot = evaluation == "pilot"
-            # a run that flies draws flies its own evaluations so (trainer.eval_actor=sample)
-            by_draws = evaluation in ("pilot", "alone") and any(r.get("eval_actor") == "sample" for r in rr)
             rows.append({"rung": rung, "seeds": " ".join(map(str, g.seeds)),
-                         "flown": FLOWN[f"{evaluation}_sample" if by_draws else evaluation],
+                         "flown": _flown(evaluation, rung in drawn),
                          **{m: fmt_interval(*interval(g, m)) for m in METRICS},
                          "filter acts (train / eval)": share if pilot else "", "wall (min)": f"{wall:.0f}",
                          ttp: _time_to_pilot(curves, stage, rung, ecr) if pilot and which == "selection" else "",
@@ -548,7 +557,7 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
     """Paired differences of each rung against the rung it changes (:data:`PARENT`, else the
     one above it), for the pilot and the actor alone."""
     rungs = _order(runs, stage)
-    drawn = {r["rung"] for r in runs if r["stage"] == stage and r.get("eval_actor") == "sample"}
+    drawn = _drawn(runs, stage)
     rows = []
     for previous, rung in zip(rungs, rungs[1:]):
         above = PARENT[rung] if PARENT.get(rung) in rungs else previous
@@ -560,10 +569,8 @@ def _ladder(stage: str, runs: list[dict[str, str]], cells: dict, which: str) -> 
                 theirs = cells[(stage, above, f"{evaluation}_sample", which)]
             deltas = _paired(cells.get((stage, rung, evaluation, which)), theirs)
             if deltas is not None:
-                flown = "actor + filter" if evaluation == "pilot" else "actor alone"
-                if rung in drawn:
-                    flown = FLOWN[f"{evaluation}_sample"]
-                rows.append({"rung vs the one it changes": f"{rung} vs {above}", "flown": flown, **deltas[1]})
+                rows.append({"rung vs the one it changes": f"{rung} vs {above}",
+                             "flown": _flown(evaluation, rung in drawn), **deltas[1]})
     return markdown_table(rows, ["rung vs the one it changes", "flown", *(f"Δ{m}" for m in METRICS)])
 
 
