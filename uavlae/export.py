@@ -74,11 +74,21 @@ def _first_module(td_module: Any) -> nn.Module:
     return mod
 
 
-def deterministic_actor_module(learner: Any, action_spec: Any) -> DeterministicActor:
-    """A plain ``nn.Module`` copy of ``learner.actor``'s deterministic action."""
+def actor_box(learner: Any, action_spec: Any) -> Any:
+    """The box the learner's actor acts in: its own (``algo.action_scale`` widens SAC's) where it
+    declares one, else the env's (``action_spec``)."""
+    from torchrl.data import Bounded
+
     from uavlae.policies.networks import action_bounds
 
-    box = action_bounds(action_spec)
+    spec = getattr(learner.actor, "spec", None)
+    space = spec["action"] if spec is not None and "action" in spec.keys() else None
+    return action_bounds(space if isinstance(space, Bounded) else action_spec)
+
+
+def deterministic_actor_module(learner: Any, action_spec: Any) -> DeterministicActor:
+    """A plain ``nn.Module`` copy of ``learner.actor``'s deterministic action."""
+    box = actor_box(learner, action_spec)
     net = copy.deepcopy(_first_module(learner.actor)).cpu().eval()
     return DeterministicActor(net, box.space.low.cpu(), box.space.high.cpu()).eval()
 
@@ -121,9 +131,7 @@ class NoisyActor(nn.Module):
 
     def __init__(self, learner: Any, action_spec: Any):
         super().__init__()
-        from uavlae.policies.networks import action_bounds
-
-        box = action_bounds(action_spec)
+        box = actor_box(learner, action_spec)
         self.act_dim = int(box.space.low.numel())
         self.stochastic = isinstance(learner.actor, ProbabilisticActor)
         if self.stochastic:  # the head's TensorDictModule: obs -> (loc, scale)

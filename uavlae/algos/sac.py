@@ -38,13 +38,14 @@ linear layer of the actor and both Q nets, before the activation; with wider lay
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field, model_validator
 from tensordict import TensorDictBase
-from torchrl.data import TensorSpec
+from torchrl.data import Bounded, TensorSpec
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, SoftUpdate
 
@@ -75,7 +76,12 @@ class SACConfig(StrictConfig):
     gamma: float = Field(0.99, gt=0, le=1)  # Table 4
     tau: float = Field(0.005, gt=0, le=1)  # Polyak factor of the target Q nets
     alpha_init: float = Field(1.0, gt=0)
-    target_entropy: float | Literal["auto"] = "auto"  # auto: -act_dim (Haarnoja 2018)
+    target_entropy: float | Literal["auto"] = "auto"  # auto: -act_dim (Haarnoja 2018), in the env's action units
+    # Beyond the paper: the actor's action box is this many times the env's. The env clips each
+    # coordinate to [-1, 1] and the speed to v_max (docs/model.md §2), so with 2 full speed lies at
+    # |tanh| >= 0.5, inside tanh's linear range: SAC's entropy term, which prices saturating the
+    # tanh, no longer prices flying at v_max. 1: the paper's actor.
+    action_scale: float = Field(1.0, ge=1.0)
     num_qvalue_nets: int = Field(2, ge=1)
     loss_function: Literal["l2", "smooth_l1", "l1"] = "l2"
     max_grad_norm: float | None = Field(None, gt=0)  # None: no clipping
@@ -284,13 +290,27 @@ def _merge_adam_states(states: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
+def scaled_action_box(action_spec: TensorSpec, scale: float) -> Bounded:
+    """The actor's box: the env's per-sample box (:func:`action_bounds`) scaled by ``scale`` about its centre."""
+    box = action_bounds(action_spec)
+    if scale == 1.0:
+        return box
+    low, high = box.space.low, box.space.high
+    mid, half = (high + low) / 2, (high - low) / 2 * scale
+    return Bounded(mid - half, mid + half, shape=box.shape, dtype=box.dtype, device=box.device)
+
+
 def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC:
     """Build SAC for observations ``[obs_dim]`` and the env's bounded ``action_spec``."""
     cfg = make_sac_config(cfg)
-    act_dim = action_bounds(action_spec).shape[-1]
-    actor = make_sac_actor(obs_dim, action_spec, cfg.hidden, cfg.activation, cfg.layer_norm)
+    box = scaled_action_box(action_spec, cfg.action_scale)
+    act_dim = box.shape[-1]
+    actor = make_sac_actor(obs_dim, box, cfg.hidden, cfg.activation, cfg.layer_norm)
     qvalue = make_q_critic(obs_dim, act_dim, cfg.hidden, cfg.activation, cfg.layer_norm)
-    target_entropy = -float(act_dim) if cfg.target_entropy == "auto" else float(cfg.target_entropy)
+    # auto: -act_dim in the env's units; a box scaled by k adds act_dim * log k to every entropy,
+    # so the target moves with it and the draws spread as far in velocity as the paper's actor's
+    target_entropy = (-float(act_dim) * (1.0 - math.log(cfg.action_scale)) if cfg.target_entropy == "auto"
+                      else float(cfg.target_entropy))
     loss = SACLoss(
         actor_network=actor,
         qvalue_network=qvalue,
