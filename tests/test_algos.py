@@ -190,6 +190,33 @@ def test_networks_respect_action_box(env, obs_dim):
         action_bounds(env.observation_spec["observation"])
 
 
+@pytest.mark.parametrize("scale, speed", [(1.0, 5.0), (2.0, 10.0)])
+def test_action_scale_puts_full_speed_inside_tanhs_range_by_hand(env, obs_dim, scale, speed):
+    """algo.action_scale widens the actor's box about its centre: the mean action for
+    loc = (atanh 0.5, 0) is (0.5, 0) in the env's box [-1, 1]^2, 5 m/s east, and (1, 0) in a box
+    twice as wide, 10 m/s = v_max. The entropy target auto stays -2: the wider box's actions are
+    in the env's units. The exported actor acts in the same box."""
+    from uavlae.envs.physics import action_to_velocity
+    from uavlae.export import NoisyActor, actor_box
+
+    sac = make_sac({"action_scale": scale}, obs_dim, env.action_spec)
+    assert sac.actor.spec["action"].space.high.tolist() == [scale, scale]
+    assert float(sac.loss.target_entropy) == -2.0
+    assert actor_box(sac, env.action_spec).space.low.tolist() == [-scale, -scale]
+    last = [m for m in sac.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([math.atanh(0.5), 0.0, 0.0, 0.0]))
+    mean = NoisyActor(sac, env.action_spec)(torch.zeros(1, obs_dim), torch.zeros(1, 2))
+    assert mean.tolist()[0] == pytest.approx([0.5 * scale, 0.0], abs=1e-6)
+    assert action_to_velocity(mean, 10.0).tolist()[0] == pytest.approx([speed, 0.0], abs=1e-5)
+
+
+def test_action_scale_below_one_is_refused():
+    with pytest.raises(ValueError, match="action_scale"):
+        make_sac_config({"action_scale": 0.5})
+
+
 def test_sac_update(env, obs_dim, replay_batch):
     sac = make_sac({}, obs_dim, env.action_spec)
     loss = sac.loss

@@ -427,13 +427,14 @@ def test_amortized_sac_llm_advises_every_trigger_and_resumes_by_replay(tmp_path,
     assert resumed["cost/llm_calls"] == 0  # all of it from the cache
 
 
-@pytest.mark.parametrize("actor_mode", ["mean", "sample"])
-def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode):
+@pytest.mark.parametrize("actor_mode, scale", [("mean", 1.0), ("sample", 1.0), ("sample", 2.0)])
+def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode, scale):
     """A run trained through the safety filter: the filtered action is stored and counted, the
     evaluation flies the actor through its filter and alone, the export is the pilot (actor and
     filter in one program) and `uavlae.fly --all` reproduces both evaluations exactly, with the
     actor's mean action and with draws from its policy (trainer.eval_actor=sample: the same
-    seeded noise stream in the evaluator and in fly)."""
+    seeded noise stream in the evaluator and in fly), also from an actor whose box is twice the
+    env's (algo.action_scale=2)."""
     from uavlae.envs import make_env_config, world
     from uavlae.export import PILOT_STATE_KEYS, export_checkpoint
     from uavlae.fly import PILOT_STATE_KEYS as FLY_KEYS, load_actor, main as fly_main, perceived, scenario_tensors
@@ -442,7 +443,7 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     assert FLY_KEYS == PILOT_STATE_KEYS
     run_dir = tmp_path / "filtered"
     final = _run("sac", run_dir, "safety_filter.mode=train_and_deploy", "trainer.eval_max_steps=null",
-                 "trainer.eval_episodes=3", f"trainer.eval_actor={actor_mode}")
+                 "trainer.eval_episodes=3", f"trainer.eval_actor={actor_mode}", f"algo.action_scale={scale}")
     assert 0 <= final["safety/train/intervention_rate"] <= 1 and final["safety/train/rows"] == 128
     assert "eval/actor/DCR" in final and "eval/safety/intervention_rate" in final
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -464,9 +465,9 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     raw = pilot(s, torch.tensor(False), zero)
     expected, _, _ = SafetyFilter(env_cfg, meta["safety_filter"]).filter_action(s_full, raw)
     torch.testing.assert_close(pilot(s, torch.tensor(True), zero), expected)
-    # zero noise is the actor's mean action; a draw is another action inside the box
+    # zero noise is the actor's mean action; a draw is another action inside the actor's box
     noisy = pilot(s, torch.tensor(False), torch.tensor([[1.5, -2.0]]))
-    assert not torch.allclose(noisy, raw) and bool((noisy.abs() <= 1).all())
+    assert not torch.allclose(noisy, raw) and bool((noisy.abs() <= scale).all())
 
     for extra, prefix in (([], "eval/"), (["--no-filter"], "eval/actor/")):
         res = fly_main(["--actor", str(out), "--scenario", str(run_dir / "eval_set.json"), "--all", *extra])

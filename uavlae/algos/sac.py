@@ -38,7 +38,6 @@ linear layer of the actor and both Q nets, before the activation; with wider lay
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -76,7 +75,7 @@ class SACConfig(StrictConfig):
     gamma: float = Field(0.99, gt=0, le=1)  # Table 4
     tau: float = Field(0.005, gt=0, le=1)  # Polyak factor of the target Q nets
     alpha_init: float = Field(1.0, gt=0)
-    target_entropy: float | Literal["auto"] = "auto"  # auto: -act_dim (Haarnoja 2018), in the env's action units
+    target_entropy: float | Literal["auto"] = "auto"  # auto: -act_dim (Haarnoja 2018), in any action_scale
     # Beyond the paper: the actor's action box is this many times the env's. The env clips each
     # coordinate to [-1, 1] and the speed to v_max (docs/model.md §2), so with 2 full speed lies at
     # |tanh| >= 0.5, inside tanh's linear range: SAC's entropy term, which prices saturating the
@@ -307,10 +306,10 @@ def make_sac(cfg: SACConfig | Any, obs_dim: int, action_spec: TensorSpec) -> SAC
     act_dim = box.shape[-1]
     actor = make_sac_actor(obs_dim, box, cfg.hidden, cfg.activation, cfg.layer_norm)
     qvalue = make_q_critic(obs_dim, act_dim, cfg.hidden, cfg.activation, cfg.layer_norm)
-    # auto: -act_dim in the env's units; a box scaled by k adds act_dim * log k to every entropy,
-    # so the target moves with it and the draws spread as far in velocity as the paper's actor's
-    target_entropy = (-float(act_dim) * (1.0 - math.log(cfg.action_scale)) if cfg.target_entropy == "auto"
-                      else float(cfg.target_entropy))
+    # auto: -act_dim whatever the box: the entropy is measured in the action's own units, which
+    # are the env's (velocity / v_max) in a wider box too, so the draws spread as far in velocity
+    # as the paper's actor's (the wider box's extra room is what the tanh gives up at its edge)
+    target_entropy = -float(act_dim) if cfg.target_entropy == "auto" else float(cfg.target_entropy)
     loss = SACLoss(
         actor_network=actor,
         qvalue_network=qvalue,
