@@ -564,15 +564,18 @@ RUNG_DRAWN_CLEARER = +exp=pilot_drawn 'env.reward.sigma=[8.0,0.4,2.4,2.4,0.6,0.4
 RUNG_DRAWN_REACH = +exp=pilot_drawn algo.action_scale=2.0
 # the same box with the entropy target -2 (1 - ln 2) = -0.614: draws twice as wide in velocity
 RUNG_DRAWN_REACH_LOOSE = +exp=pilot_drawn algo.action_scale=2.0 algo.target_entropy=-0.6137
+# the box four times the env's: full speed at |tanh| >= 0.25 (twice's kept pilots wish 8-9 m/s
+# as the committed recipe's do)
+RUNG_DRAWN_REACH4 = +exp=pilot_drawn algo.action_scale=4.0
 .PHONY: pilot-study pilot-screen pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
-	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-screen-drawn-reach pilot-screen-drawn-reach-loose pilot-verdict pilot-heldout pilot-export pilot-export-seeds pilot-references pilot-records pilot-sampling pilot-screen-wide \
-	pilot-report pilot-stalls pilot-card
-pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-card
+	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-screen-drawn-reach pilot-screen-drawn-reach-loose pilot-screen-drawn-reach4 pilot-verdict pilot-heldout pilot-export pilot-export-seeds pilot-references pilot-records pilot-sampling pilot-screen-wide \
+	pilot-report pilot-stalls pilot-full-speed pilot-card
+pilot-study: pilot-screen pilot-verdict pilot-references pilot-records pilot-report pilot-stalls pilot-full-speed pilot-card
 pilot-screen: pilot-screen-frame pilot-screen-filter pilot-screen-shaped pilot-screen-penalty pilot-screen-proposed \
 	pilot-screen-wish pilot-screen-teach pilot-screen-wish-teach pilot-screen-teach-all pilot-screen-wish-teach-all \
 	pilot-screen-labels pilot-screen-labels-strong pilot-screen-labels-greedy pilot-screen-labels-wide pilot-screen-labels-wide-economy pilot-screen-lag pilot-screen-learner \
-	pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-screen-drawn-reach pilot-screen-drawn-reach-loose
+	pilot-screen-drawn pilot-screen-sharp pilot-screen-drawn-penalty pilot-screen-drawn-clear pilot-screen-drawn-clearer pilot-screen-drawn-reach pilot-screen-drawn-reach-loose pilot-screen-drawn-reach4
 pilot-screen-frame: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_WORLD) experiment.method=sac_world
 	$(PILOT_SCREEN) $(RUNG_EGO) experiment.method=sac_ego
@@ -622,6 +625,8 @@ pilot-screen-drawn-reach: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_DRAWN_REACH) experiment.method=pilot_drawn_reach
 pilot-screen-drawn-reach-loose: $(STAMP)
 	$(PILOT_SCREEN) $(RUNG_DRAWN_REACH_LOOSE) experiment.method=pilot_drawn_reach_loose
+pilot-screen-drawn-reach4: $(STAMP)
+	$(PILOT_SCREEN) $(RUNG_DRAWN_REACH4) experiment.method=pilot_drawn_reach4
 # the verdict: a recipe fixed before these runs (PILOT_RECIPE) on the verdict seeds at the
 # paper's budget, each flown on the held-out set through its filter and alone; seed 0's pilot exported
 PILOT_VERDICT_FRAMES ?= 2500000
@@ -688,6 +693,16 @@ pilot-screen-wide: $(STAMP)
 # where the committed pilot's unlanded held-out episodes end (results/pilot/stalls.json; the card reads it)
 pilot-stalls: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot stalls --actor results/pilot/pilot.pt2 --scenario $(HELDOUT) --out results/pilot
+# a diagnosis, not a pilot: the committed pilot on the screening set as it flies and with its actor's
+# wish flown in its direction at v_max, then through its filter (uavlae.fly --full-speed): how much
+# of its energy its wished speed costs (results/pilot/full_speed.json)
+pilot-full-speed: $(STAMP)
+	{ printf '{"set": "%s", "as_flown": ' $(SCREENSET); \
+	  $(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(SCREENSET) --all | tail -1 | tr -d '\n'; \
+	  printf ', "at_full_speed": '; \
+	  $(BIN)/python -m uavlae.fly --actor results/pilot/pilot.pt2 --scenario $(SCREENSET) --all --full-speed | tail -1 | tr -d '\n'; \
+	  printf '}\n'; } > results/pilot/full_speed.json.tmp && mv results/pilot/full_speed.json.tmp results/pilot/full_speed.json
+	cat results/pilot/full_speed.json
 pilot-report: $(STAMP)
 	$(BIN)/python -m uavlae.experiments.pilot report results/pilot
 # the committed pilot's model card (results/pilot/README.md) from the records and its recipe's file

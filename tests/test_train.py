@@ -427,6 +427,17 @@ def test_amortized_sac_llm_advises_every_trigger_and_resumes_by_replay(tmp_path,
     assert resumed["cost/llm_calls"] == 0  # all of it from the cache
 
 
+def test_full_speed_by_hand():
+    """uavlae.fly --full-speed's action: (0.3, 0.4) is 5 m/s at v_max = 10, so (0.6, 0.8); (1, 1)
+    is clipped to 10 m/s on the diagonal, (0.7071, 0.7071) either way; (0.03, 0) is 0.3 m/s, under
+    the 0.5 m/s floor, and stays; (1.6, 0) from a wider box is (1, 0)."""
+    from uavlae.fly import full_speed
+
+    out = full_speed(torch.tensor([[0.3, 0.4], [1.0, 1.0], [0.03, 0.0], [1.6, 0.0]]), 10.0)
+    torch.testing.assert_close(out, torch.tensor([[0.6, 0.8], [0.70711, 0.70711], [0.03, 0.0], [1.0, 0.0]]),
+                               atol=1e-5, rtol=0)
+
+
 @pytest.mark.parametrize("actor_mode, scale", [("mean", 1.0), ("sample", 1.0), ("sample", 2.0)])
 def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode, scale):
     """A run trained through the safety filter: the filtered action is stored and counted, the
@@ -465,6 +476,13 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     raw = pilot(s, torch.tensor(False), zero)
     expected, _, _ = SafetyFilter(env_cfg, meta["safety_filter"]).filter_action(s_full, raw)
     torch.testing.assert_close(pilot(s, torch.tensor(True), zero), expected)
+    # --full-speed, a diagnosis: the same wish in its direction at v_max, then the pilot's filter
+    from uavlae.fly import full_speed, policy_of
+
+    fast = policy_of(pilot, meta, env_cfg, act="mean", at_full_speed=True)(state)
+    wish = full_speed(raw, env_cfg.motion.v_max)
+    expected_fast, _, _ = SafetyFilter(env_cfg, meta["safety_filter"]).filter_action(s_full, wish)
+    torch.testing.assert_close(fast, expected_fast)
     # zero noise is the actor's mean action; a draw is another action inside the actor's box
     noisy = pilot(s, torch.tensor(False), torch.tensor([[1.5, -2.0]]))
     assert not torch.allclose(noisy, raw) and bool((noisy.abs() <= scale).all())

@@ -1,7 +1,7 @@
 """Fly an exported actor or pilot on a scenario with torch alone (no torchrl, no LLM):
 
     python -m uavlae.fly --actor actor.pt2 --scenario scenario.json [--index 0] [--png out.png]
-    python -m uavlae.fly --actor pilot.pt2 --scenario set.json --all [--no-filter] [--act mean|sample]
+    python -m uavlae.fly --actor pilot.pt2 --scenario set.json --all [--no-filter] [--act mean|sample] [--full-speed]
 
 An actor reads the observation (built here from the embedded env config); a pilot
 (``uavlae.export`` of a run with a safety filter) reads the raw state the DCU perceives and
@@ -100,12 +100,30 @@ def perceived(state: dict[str, torch.Tensor], env_cfg: Any) -> dict[str, torch.T
     return s
 
 
-def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True, act: str | None = None) -> Any:
+# --full-speed leaves wishes slower than this (m/s) as they are: the actor asking to hover
+FULL_SPEED_FLOOR = 0.5
+
+
+def full_speed(action: torch.Tensor, v_max: float) -> torch.Tensor:
+    """The action of the same direction at ``v_max`` (in the env's units: |a| = 1), where the
+    action's velocity (docs/model.md §2) is at least :data:`FULL_SPEED_FLOOR`; else the action."""
+    from uavlae.envs.physics import action_to_velocity
+
+    v = action_to_velocity(action, v_max)
+    speed = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    return torch.where(speed >= FULL_SPEED_FLOOR, v / speed.clamp_min(FULL_SPEED_FLOOR), action)
+
+
+def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True, act: str | None = None,
+              at_full_speed: bool = False) -> Any:
     """``state -> action`` for an exported file: an actor reads the observation the env would
     build, a pilot the perceived raw state (its filter on unless ``use_filter`` is False). A pilot's
     actor acts as ``act`` says (default: as its recipe, meta ``actor``): ``mean``, or ``sample``, a
     draw from its policy with the noise from the evaluator's stream (meta ``noise_seed``),
-    started anew by each call of this function."""
+    started anew by each call of this function. ``at_full_speed``, a diagnosis and not the pilot:
+    the actor's action flown in its direction at v_max (:func:`full_speed`), then through the
+    pilot's filter as exported (the same module in-process: ``SafetyFilter`` with the pilot's
+    settings), to ask how much of a pilot's time its wished speed costs."""
     from uavlae.policies.draws import draw, noise_stream
 
     world, _ = _world_modules()
@@ -114,16 +132,33 @@ def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool 
         if "noise_dim" not in meta:  # a pilot exported before the noise input: its mean action
             if act == "sample":
                 raise ValueError("--act sample: this pilot was exported without a noise input (its mean action only)")
+            if at_full_speed:
+                raise ValueError("--full-speed: this pilot was exported without a noise input")
             return lambda state: module(perceived(state, env_cfg), flag)
         dim, mode = int(meta["noise_dim"]), act or meta.get("actor", "mean")
         stream = noise_stream(int(meta.get("noise_seed", 0)))
+        safety = None
+        if at_full_speed and use_filter:
+            from uavlae.policies.safety import SafetyFilter
+
+            safety = SafetyFilter(env_cfg, meta["safety_filter"])
 
         def pilot(state: dict[str, torch.Tensor]) -> torch.Tensor:
             rows = state["position"].shape[0]
             noise = draw(stream, rows, dim) if mode == "sample" else torch.zeros(rows, dim)
-            return module(perceived(state, env_cfg), flag, noise)
+            s = perceived(state, env_cfg)
+            if not at_full_speed:
+                return module(s, flag, noise)
+            wish = full_speed(module(s, torch.tensor(False), noise), env_cfg.motion.v_max)
+            if safety is None:
+                return wish
+            s = dict(s)
+            s.update(world.nearest_distances(s, env_cfg))
+            return safety.filter_action(s, wish)[0]
 
         return pilot
+    if at_full_speed:
+        raise ValueError("--full-speed: an exported actor without its filter; export the pilot")
     if act == "sample":
         raise ValueError("--act sample: an exported actor flies its mean action; a pilot (exported with its filter) can sample")
     layout = world.ObservationLayout(env_cfg)
@@ -227,6 +262,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--act", choices=("mean", "sample"), default=None,
                    help="a pilot's actor: its mean action, or a draw from its policy from the evaluator's noise stream "
                         "(default: as its recipe flies, meta 'actor')")
+    p.add_argument("--full-speed", action="store_true",
+                   help="a diagnosis, not the pilot: the actor's action flown in its direction at v_max (wishes "
+                        f"under {FULL_SPEED_FLOOR} m/s as they are), then through the pilot's filter")
     p.add_argument("--seed", type=int, default=None,
                    help="seeds the other UAVs' random motion (default: the run's evaluation seed with --all, else 0)")
     p.add_argument("--png", default=None, help="draw the flight to this PNG (needs matplotlib)")
@@ -238,7 +276,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.no_filter and meta.get("kind", "actor") != "pilot":
         raise SystemExit(f"--no-filter: {args.actor} is an actor without a safety filter")
     try:
-        policy = policy_of(actor, meta, env_cfg, use_filter=not args.no_filter, act=args.act)
+        policy = policy_of(actor, meta, env_cfg, use_filter=not args.no_filter, act=args.act,
+                           at_full_speed=args.full_speed)
     except ValueError as e:
         raise SystemExit(str(e)) from None
     data = json.loads(Path(args.scenario).read_text())
