@@ -293,6 +293,19 @@ def test_stall_summary_by_hand():
                      "window": 2}
 
 
+def test_the_cards_full_speed_line():
+    """ECR 0.117 as flown, 0.092 at full speed, greedy 0.072: the wished speed costs
+    (0.117 - 0.092) / (0.117 - 0.072) = 0.025 / 0.045 = 56% of the energy above greedy's."""
+    from uavlae.experiments.pilot import _full_speed_line
+
+    m = {"DCR": 0.975, "CR": 0.0, "SLR": 0.914, "RVR": 0.0}
+    found = {"set": "s.json", "as_flown": {**m, "ECR": 0.117}, "at_full_speed": {**m, "SLR": 0.961, "ECR": 0.092}}
+    line = _full_speed_line(found, 0.072)
+    assert "ECR 0.117 as it flies, 0.092 at full speed" in line and "SLR 0.914 / 0.961" in line
+    assert line.endswith("Greedy flies ECR 0.072 there: the wished speed costs 56% of the pilot's energy above greedy's.")
+    assert _full_speed_line(found).endswith("CR 0.000 / 0.000.")  # no greedy on record: no share
+
+
 def test_the_cards_stall_and_pace_lines():
     """The card's sentences from stalls.json: a pilot whose every episode landed says so (no
     median of nothing); the pace line rounds 330.09 slots to 330, 2356.6 m to 2357, 7.139 m a

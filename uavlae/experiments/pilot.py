@@ -756,6 +756,23 @@ def _stalls_line(found: dict[str, Any]) -> str:
                                 if found["unlanded_filter_change_median"] > 2 * found["landed_filter_change_mean"] else "."))
 
 
+def _full_speed_line(found: dict[str, Any], greedy_ecr: float | None = None) -> str:
+    """The card's sentence from ``full_speed.json`` (``make pilot-full-speed``): the committed
+    pilot as it flies against its wish flown at v_max through its filter, on the same scenarios;
+    ``greedy_ecr``: the greedy heuristic's pooled ECR there, when the records hold it."""
+    a, b = found["as_flown"], found["at_full_speed"]
+    text = (f"At full speed (`make pilot-full-speed`, a diagnosis and not the pilot: the actor's wish flown in its "
+            f"direction at v_max, then through its filter, on `{found['set']}`): ECR {a['ECR']:.3f} as it flies, "
+            f"{b['ECR']:.3f} at full speed; DCR {a['DCR']:.3f} / {b['DCR']:.3f}, SLR {a['SLR']:.3f} / {b['SLR']:.3f}, "
+            f"CR {a['CR']:.3f} / {b['CR']:.3f}")
+    if greedy_ecr is None:
+        return text + "."
+    gap = a["ECR"] - greedy_ecr
+    share = (a["ECR"] - b["ECR"]) / gap if gap > 0 else math.nan
+    return (text + f". Greedy flies ECR {greedy_ecr:.3f} there: the wished speed costs "
+            + (f"{share:.0%} of the pilot's energy above greedy's." if math.isfinite(share) else "nothing above greedy's."))
+
+
 def _pace_line(found: dict[str, Any]) -> str:
     """Where the landed missions' time went, against the greedy heuristic's on the same scenarios."""
     return (f"Its landed missions took {found['landed_slots_mean']:.0f} slots on average (greedy's "
@@ -850,6 +867,12 @@ def card(records: Path, recipe: Path, stage: str = "verdict", rung: str = "pilot
     if (records / "stalls.json").exists():
         found = read_json(records / "stalls.json")
         lines += [_stalls_line(found), "", *([_pace_line(found), ""] if "landed_m_per_slot" in found else [])]
+    if (records / "full_speed.json").exists():
+        found = read_json(records / "full_speed.json")
+        which = next((k for k, v in SETS.items() if Path(v).name == Path(found["set"]).name), None)
+        g = cells.get(("references", "greedy", "alone", which)) if which else None
+        greedy = (sum(float(r["energy_used"]) for r in g) / sum(float(r["energy_total"]) for r in g)) if g else None
+        lines += [_full_speed_line(found, greedy), ""]
     lines += ["## Safety", "", GUARANTEE, ""]
     target = records / "README.md"
     write_text(target, "\n".join(lines) + "\n")
