@@ -97,6 +97,29 @@ def test_ten_metres_a_second_across_an_rz_edge_is_capped():
         assert bool(touches.any()) and bool(v.norm() > 5.0 + 1e-4) == speeding
 
 
+def test_cruise_flies_the_wish_at_full_speed_unless_a_rule_binds():
+    """safety_filter.cruise: in open air (0.3, 0.4), 5 m/s, is flown at 10 m/s in its direction,
+    (0.6, 0.8), and counts as unchanged (the filter did not intervene); (0.03, 0), 0.3 m/s, under
+    the 0.5 m/s floor, stays as it is. The RZ 3 m east caps (0.3, 0), 3 m/s cruising at 10, at
+    4.75 m/s: (0.475, 0), a change of 10 - 4.75 = 5.25 m/s from the cruise command."""
+    f = _filter({**FOUR, "cruise": True})
+    s = _state((100.0, 100.0))
+    action, changed, delta = f.filter_action(s, torch.tensor([[0.3, 0.4]]))
+    torch.testing.assert_close(action, torch.tensor([[0.6, 0.8]]))
+    assert changed.tolist() == [False] and delta.item() == 0.0
+    hover = torch.tensor([[0.03, 0.0]])
+    action, changed, _ = f.filter_action(s, hover)
+    assert torch.equal(action, hover) and changed.tolist() == [False]
+    s = _state((100.0, 100.0), rz=[(103.0, 50.0, 200.0, 150.0)])
+    action, changed, delta = f.filter_action(s, torch.tensor([[0.3, 0.0]]))
+    assert action[0, 0].item() == pytest.approx(0.475) and action[0, 1].item() == 0.0
+    assert changed.tolist() == [True] and delta.item() == pytest.approx(5.25)
+    # without cruise the same 3 m/s is under the cap and flies as it is
+    slow = torch.tensor([[0.3, 0.0]])
+    action, changed, _ = _filter().filter_action(s, slow)
+    assert torch.equal(action, slow) and changed.tolist() == [False]
+
+
 def test_corner_with_the_boundary_and_a_building():
     # 0.5 m above the south edge (so every step ends at y >= 0.5), a BZ 2 m east. The wish
     # (7.07, -7.07) leaves the area; so does its y part and all their shortenings; its x part

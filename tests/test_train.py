@@ -438,14 +438,14 @@ def test_full_speed_by_hand():
                                atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("actor_mode, scale", [("mean", 1.0), ("sample", 1.0), ("sample", 2.0)])
-def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode, scale):
+@pytest.mark.parametrize("actor_mode, scale, cruise", [("mean", 1.0, False), ("sample", 1.0, False), ("sample", 2.0, True)])
+def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path, actor_mode, scale, cruise):
     """A run trained through the safety filter: the filtered action is stored and counted, the
     evaluation flies the actor through its filter and alone, the export is the pilot (actor and
     filter in one program) and `uavlae.fly --all` reproduces both evaluations exactly, with the
     actor's mean action and with draws from its policy (trainer.eval_actor=sample: the same
     seeded noise stream in the evaluator and in fly), also from an actor whose box is twice the
-    env's (algo.action_scale=2)."""
+    env's (algo.action_scale=2) through a filter that cruises (safety_filter.cruise)."""
     from uavlae.envs import make_env_config, world
     from uavlae.export import PILOT_STATE_KEYS, export_checkpoint
     from uavlae.fly import PILOT_STATE_KEYS as FLY_KEYS, load_actor, main as fly_main, perceived, scenario_tensors
@@ -454,7 +454,7 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     assert FLY_KEYS == PILOT_STATE_KEYS
     run_dir = tmp_path / "filtered"
     final = _run("sac", run_dir, "safety_filter.mode=train_and_deploy", "trainer.eval_max_steps=null",
-                 "trainer.eval_episodes=3", f"trainer.eval_actor={actor_mode}", f"algo.action_scale={scale}")
+                 "trainer.eval_episodes=3", f"trainer.eval_actor={actor_mode}", f"algo.action_scale={scale}", f"safety_filter.cruise={str(cruise).lower()}")
     assert 0 <= final["safety/train/intervention_rate"] <= 1 and final["safety/train/rows"] == 128
     assert "eval/actor/DCR" in final and "eval/safety/intervention_rate" in final
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -463,6 +463,7 @@ def test_safety_filter_run_exports_a_pilot_that_flies_as_the_evaluator(tmp_path,
     out = export_checkpoint(run_dir, tmp_path / "pilot.pt2")
     pilot, meta = load_actor(out)
     assert meta["kind"] == "pilot" and meta["safety_filter"]["mode"] == "train_and_deploy"
+    assert meta["safety_filter"]["cruise"] is cruise
     assert meta["actor"] == actor_mode and meta["noise_dim"] == 2 and meta["noise_seed"] == 12345
     # the exported filter acts as the in-process one on the same perceived state
     env_cfg = make_env_config(meta["env"])

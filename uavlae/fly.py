@@ -100,18 +100,14 @@ def perceived(state: dict[str, torch.Tensor], env_cfg: Any) -> dict[str, torch.T
     return s
 
 
-# --full-speed leaves wishes slower than this (m/s) as they are: the actor asking to hover
-FULL_SPEED_FLOOR = 0.5
-
-
 def full_speed(action: torch.Tensor, v_max: float) -> torch.Tensor:
-    """The action of the same direction at ``v_max`` (in the env's units: |a| = 1), where the
-    action's velocity (docs/model.md §2) is at least :data:`FULL_SPEED_FLOOR`; else the action."""
-    from uavlae.envs.physics import action_to_velocity
+    """The action of the same direction at ``v_max`` (in the env's units: |a| = 1) where the
+    action's velocity (docs/model.md §2) is at least 0.5 m/s, else the action: what
+    ``safety_filter.cruise`` flies (:func:`uavlae.policies.safety.cruise_action`)."""
+    _world_modules()
+    from uavlae.policies.safety import cruise_action
 
-    v = action_to_velocity(action, v_max)
-    speed = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    return torch.where(speed >= FULL_SPEED_FLOOR, v / speed.clamp_min(FULL_SPEED_FLOOR), action)
+    return cruise_action(action, v_max)
 
 
 def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool = True, act: str | None = None,
@@ -264,7 +260,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         "(default: as its recipe flies, meta 'actor')")
     p.add_argument("--full-speed", action="store_true",
                    help="a diagnosis, not the pilot: the actor's action flown in its direction at v_max (wishes "
-                        f"under {FULL_SPEED_FLOOR} m/s as they are), then through the pilot's filter")
+                        "under 0.5 m/s as they are), then through the pilot's filter (safety_filter.cruise in training)")
     p.add_argument("--seed", type=int, default=None,
                    help="seeds the other UAVs' random motion (default: the run's evaluation seed with --all, else 0)")
     p.add_argument("--png", default=None, help="draw the flight to this PNG (needs matplotlib)")

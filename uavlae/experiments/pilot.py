@@ -445,7 +445,8 @@ LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sa
           "sac_ego_filter_shaped_teach_all_labels_greedy", "sac_ego_filter_shaped_teach_all_labels_wide",
           "sac_ego_filter_shaped_teach_all_labels_wide_economy", "saclag_ego_shaped", "saclagln_ego_shaped",
           *RECIPES, "pilot_drawn_sharp", "pilot_drawn_penalty", "pilot_drawn_clear", "pilot_drawn_clearer",
-          "pilot_drawn_reach", "pilot_drawn_reach_loose", "pilot_drawn_reach4")
+          "pilot_drawn_reach", "pilot_drawn_reach_loose", "pilot_drawn_reach4",
+          "pilot_drawn_cruise")
 
 
 def _order(runs: list[dict[str, str]], stage: str) -> list[str]:
@@ -539,7 +540,8 @@ PARENT = {"sac_ego_filter_shaped_wish": "sac_ego_filter_shaped", "sac_ego_filter
           "pilot_drawn": "sac_ego_filter_shaped_wish_teach_all",
           "pilot_drawn_sharp": "pilot_drawn", "pilot_drawn_penalty": "pilot_drawn", "pilot_drawn_clear": "pilot_drawn",
           "pilot_drawn_clearer": "pilot_drawn_clear", "pilot_drawn_reach": "pilot_drawn",
-          "pilot_drawn_reach_loose": "pilot_drawn_reach", "pilot_drawn_reach4": "pilot_drawn_reach"}
+          "pilot_drawn_reach_loose": "pilot_drawn_reach", "pilot_drawn_reach4": "pilot_drawn_reach",
+          "pilot_drawn_cruise": "pilot_drawn"}
 
 
 def _paired(a: list[dict[str, str]] | None, b: list[dict[str, str]] | None) -> tuple[list[int], dict[str, str]] | None:

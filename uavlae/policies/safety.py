@@ -84,6 +84,23 @@ class SafetyFilterConfig(StrictModel):
     # training only: the cost of a learner that constrains one (sac_lag, ppo_lagrangian, cpo) gains
     # cost * |v_executed - v_wish| / v_max, so its limit bounds how much the filter corrects
     cost: float = Field(0.0, ge=0)
+    # beyond the filter's safety role, the pilot's speed rule: the wish flown in its direction at
+    # v_max (a wish under CRUISE_FLOOR m/s, asking to hover, as it is) before the screen, as
+    # P(v) falls from P(0) = 168 W to P(v_max) = 126 W (docs/model.md §4); the intervention counts
+    # and prices are against that command. False: the wish as the actor sent it
+    cruise: bool = False
+
+
+# m/s: a wish slower than this asks to hover, and cruise leaves it as it is
+CRUISE_FLOOR = 0.5
+
+
+def cruise_action(action: Tensor, v_max: float) -> Tensor:
+    """The action ``[..., 2]`` in its direction at ``v_max`` (|a| = 1 in the env's units) where
+    its velocity (docs/model.md §2) is at least :data:`CRUISE_FLOOR` m/s, else as it is."""
+    v = ph.action_to_velocity(action, v_max)
+    speed = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    return torch.where(speed >= CRUISE_FLOOR, v / speed.clamp_min(CRUISE_FLOOR), action)
 
 
 def make_safety_filter_config(cfg: Any = None, **overrides: Any) -> SafetyFilterConfig:
@@ -236,14 +253,16 @@ class SafetyFilter(nn.Module):
 
     def filter_action(self, s: Mapping[str, Tensor], action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(executed action, changed [B] bool, |v_executed - v_wish| [B] in m/s)`` for an
-        action in [-1, 1]^2 (as the env reads it: SPEC §2)."""
+        action in [-1, 1]^2 (as the env reads it: SPEC §2). With ``cruise`` the wish is the
+        action at v_max (:func:`cruise_action`), and an unchanged row flies that."""
         v_max = self.env_cfg.motion.v_max
-        wish = ph.action_to_velocity(action, v_max)
+        command = cruise_action(action, v_max) if self.cfg.cruise else action
+        wish = ph.action_to_velocity(command, v_max)
         v = self.velocity(s, wish)
         delta = torch.linalg.vector_norm(v - wish, dim=-1)
         # a change below a micrometre per second is float noise, not an intervention
         changed = delta > 1e-6
-        executed = torch.where(changed.unsqueeze(-1), v / v_max, action)
+        executed = torch.where(changed.unsqueeze(-1), v / v_max, command)
         return executed, changed, delta
 
 
@@ -334,7 +353,7 @@ def apply_filter(safety: SafetyFilter, td: TensorDictBase) -> TensorDictBase:
 
 
 __all__ = [
-    "FilteredPolicy", "MODES", "STATE_KEYS", "SafetyFilter", "SafetyFilterConfig", "SafetyStats", "Screened",
-    "apply_filter", "blocked", "choose", "inflate", "make_safety_filter", "make_safety_filter_config", "picked",
+    "CRUISE_FLOOR", "FilteredPolicy", "MODES", "STATE_KEYS", "SafetyFilter", "SafetyFilterConfig", "SafetyStats", "Screened",
+    "apply_filter", "blocked", "choose", "cruise_action", "inflate", "make_safety_filter", "make_safety_filter_config", "picked",
     "screen",
 ]
