@@ -39,7 +39,7 @@ def test_exp_composes_and_validates(hydra_ctx, exp):
     # the paper's greedy heuristic wherever one acts, the planner only under its own names
     assert cfg.heuristic_kind == ("planner" if exp.endswith("_planner") or exp.startswith("pilot") else "greedy")
     expected_advisor = {
-        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "pilot_drawn": "heuristic", "pilot_mean": "heuristic", "llm": "llm",
+        "sac_llm": "llm", "sac_llm_amortized": "llm", "sac_llm_fp": "llm", "sac_heuristic": "heuristic", "sac_heuristic_planner": "heuristic", "pilot": "heuristic", "pilot_drawn": "heuristic", "pilot_mean": "heuristic", "pilot_cruise": "heuristic", "llm": "llm",
         "sac_hover": "hover", "sac_random_advice": "random",
     }
     assert cfg.advisor.kind == expected_advisor.get(exp, "none")

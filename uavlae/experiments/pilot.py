@@ -435,7 +435,7 @@ def _cells(episodes: list[dict[str, str]]) -> dict[tuple[str, str, str, str], li
 
 
 # the recipes a verdict runs (uavlae/conf/exp/<name>.yaml; make pilot-verdict PILOT_RECIPE=<name>)
-RECIPES = ("pilot_mean", "pilot_drawn")
+RECIPES = ("pilot_mean", "pilot_drawn", "pilot_cruise")
 # the ladder's order (the Makefile's RUNG_*); rungs not named here follow in the order recorded
 LADDER = ("sac_world", "sac_ego", "sac_ego_filter", "sac_ego_filter_shaped", "sac_ego_filter_shaped_penalty",
           "sac_ego_filter_shaped_proposed", "sac_ego_filter_shaped_wish", "sac_ego_filter_shaped_teach",
