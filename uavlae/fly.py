@@ -117,9 +117,9 @@ def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool 
     actor acts as ``act`` says (default: as its recipe, meta ``actor``): ``mean``, or ``sample``, a
     draw from its policy with the noise from the evaluator's stream (meta ``noise_seed``),
     started anew by each call of this function. ``at_full_speed``, a diagnosis and not the pilot:
-    the actor's action flown in its direction at v_max (:func:`full_speed`), then through the
-    pilot's filter as exported (the same module in-process: ``SafetyFilter`` with the pilot's
-    settings), to ask how much of a pilot's time its wished speed costs."""
+    the actor's action through the pilot's filter (the same module in-process: ``SafetyFilter``
+    with the pilot's settings) with ``cruise`` on, which flies it in its direction at v_max first
+    (alone: :func:`full_speed`), to ask how much of a pilot's time its wished speed costs."""
     from uavlae.policies.draws import draw, noise_stream
 
     world, _ = _world_modules()
@@ -137,7 +137,7 @@ def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool 
         if at_full_speed and use_filter:
             from uavlae.policies.safety import SafetyFilter
 
-            safety = SafetyFilter(env_cfg, meta["safety_filter"])
+            safety = SafetyFilter(env_cfg, {**meta["safety_filter"], "cruise": True})
 
         def pilot(state: dict[str, torch.Tensor]) -> torch.Tensor:
             rows = state["position"].shape[0]
@@ -145,9 +145,9 @@ def policy_of(module: Any, meta: dict[str, Any], env_cfg: Any, use_filter: bool 
             s = perceived(state, env_cfg)
             if not at_full_speed:
                 return module(s, flag, noise)
-            wish = full_speed(module(s, torch.tensor(False), noise), env_cfg.motion.v_max)
+            wish = module(s, torch.tensor(False), noise)
             if safety is None:
-                return wish
+                return full_speed(wish, env_cfg.motion.v_max)
             s = dict(s)
             s.update(world.nearest_distances(s, env_cfg))
             return safety.filter_action(s, wish)[0]
